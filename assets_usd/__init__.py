@@ -1,0 +1,1 @@
+"""The shipped USD asset library (hand and objects) and its manifest."""

@@ -1,0 +1,1 @@
+"""Reusable asset-authoring functions: mesh checks, convex decomposition, tet meshing, USD writers."""

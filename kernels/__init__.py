@@ -1,0 +1,1 @@
+"""Warp kernels: tactile forces, FEM strain, deformable pose and reward terms for all worlds."""

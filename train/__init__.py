@@ -1,0 +1,1 @@
+"""Training and playing entry points (rsl-rl)."""
