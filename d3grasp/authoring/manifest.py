@@ -1,0 +1,131 @@
+"""The asset manifest: one JSON file listing every asset of a library.
+
+Schema (``manifest.json``)::
+
+    {
+      "format": "d3grasp-manifest",
+      "version": 1,
+      "size_bins": {"small": [0.03, 0.06], "medium": [0.06, 0.12], "large": [0.12, 0.20]},
+      "assets": [AssetEntry, ...]
+    }
+
+Paths inside entries are relative to the manifest's directory, so a library can be moved or
+installed as package data.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+MANIFEST_FORMAT = "d3grasp-manifest"
+MANIFEST_VERSION = 1
+
+# Size bins by the longest side of the object's axis-aligned bounding box in its rest frame, in
+# metres. Lower bound inclusive, upper bound exclusive (the last bin includes its upper bound).
+# The DexHand13 spans ~0.14 m from thumb base to finger tips, so 20 cm is the largest object it
+# can wrap; below 3 cm the pads (2.3-3.5 cm) cannot get two opposing contacts.
+SIZE_BINS: dict[str, tuple[float, float]] = {
+    "small": (0.03, 0.06),
+    "medium": (0.06, 0.12),
+    "large": (0.12, 0.20),
+}
+
+AssetKind = Literal["rigid", "deformable"]
+
+
+def size_bin_of(longest_side: float) -> str:
+    """Size bin name for an object whose longest side is ``longest_side`` metres.
+
+    Raises ``ValueError`` outside every bin (too small or too large for the hand).
+    """
+    names = list(SIZE_BINS)
+    for i, name in enumerate(names):
+        lo, hi = SIZE_BINS[name]
+        last = i == len(names) - 1
+        if lo <= longest_side < hi or (last and longest_side == hi):
+            return name
+    lo = SIZE_BINS[names[0]][0]
+    hi = SIZE_BINS[names[-1]][1]
+    raise ValueError(
+        f"longest side {longest_side * 100:.1f} cm is outside the graspable range "
+        f"{lo * 100:.0f}-{hi * 100:.0f} cm"
+    )
+
+
+@dataclass
+class AssetEntry:
+    """One asset of a library.
+
+    ``material`` keys: rigid: ``density`` (kg/m^3), ``friction``; deformable additionally
+    ``youngs_modulus`` (Pa), ``poissons_ratio``, ``damping`` (Newton does not read damping from
+    USD: the environment applies it after loading), ``class`` (sponge/bread/plush/rubber).
+    ``stats``: rigid: ``num_hulls``, ``num_hull_vertices``; deformable: ``num_tets``,
+    ``num_nodes``, ``num_surface_triangles``.
+    """
+
+    id: str
+    path: str  # relative to the manifest directory
+    kind: AssetKind
+    family: str
+    size_bin: str
+    extents: list[float]  # bounding-box side lengths in the rest frame, metres
+    mass: float  # kg
+    volume: float  # m^3
+    material: dict[str, Any]
+    split: Literal["train", "test"] = "train"
+    stats: dict[str, Any] = field(default_factory=dict)
+    source: str = ""  # how it was made, e.g. "procedural:box" or "import:mug.obj"
+
+
+def write_manifest(path: str | Path, entries: list[AssetEntry]) -> None:
+    """Write a manifest atomically (temp file + rename), sorted by kind then id."""
+    path = Path(path)
+    entries = sorted(entries, key=lambda e: (e.kind, e.id))
+    ids = [e.id for e in entries]
+    dup = {i for i in ids if ids.count(i) > 1}
+    if dup:
+        raise ValueError(f"duplicate asset ids in manifest: {sorted(dup)}")
+    doc = {
+        "format": MANIFEST_FORMAT,
+        "version": MANIFEST_VERSION,
+        "size_bins": {k: list(v) for k, v in SIZE_BINS.items()},
+        "assets": [asdict(e) for e in entries],
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".manifest-", suffix=".json")
+    with os.fdopen(fd, "w") as f:
+        json.dump(doc, f, indent=1)
+        f.write("\n")
+    os.replace(tmp, path)
+
+
+def read_manifest(path: str | Path) -> list[AssetEntry]:
+    """Read a manifest; raises ``ValueError`` with the file name on any malformed content."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: manifest not found")
+    try:
+        doc = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a JSON manifest ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != MANIFEST_FORMAT:
+        raise ValueError(f"{path}: not a d3grasp manifest (missing format '{MANIFEST_FORMAT}')")
+    if doc.get("version") != MANIFEST_VERSION:
+        raise ValueError(f"{path}: unsupported manifest version {doc.get('version')!r}")
+    entries = []
+    for i, raw in enumerate(doc.get("assets", [])):
+        try:
+            entries.append(AssetEntry(**raw))
+        except TypeError as exc:
+            raise ValueError(f"{path}: asset #{i} is malformed ({exc})") from None
+    return entries
+
+
+def resolve_asset_path(manifest_path: str | Path, entry: AssetEntry) -> Path:
+    """Absolute path of an entry's USD file."""
+    return (Path(manifest_path).resolve().parent / entry.path).resolve()
