@@ -129,3 +129,14 @@ def read_manifest(path: str | Path) -> list[AssetEntry]:
 def resolve_asset_path(manifest_path: str | Path, entry: AssetEntry) -> Path:
     """Absolute path of an entry's USD file."""
     return (Path(manifest_path).resolve().parent / entry.path).resolve()
+
+
+def merge_into_manifest(path: str | Path, entries: list[AssetEntry], kind: AssetKind) -> None:
+    """Replace every entry of ``kind`` in the manifest at ``path`` by ``entries``.
+
+    Lets the rigid and the soft builders run separately (and be re-run alone) while sharing one
+    manifest. Creates the manifest if it does not exist.
+    """
+    path = Path(path)
+    kept = [e for e in read_manifest(path) if e.kind != kind] if path.exists() else []
+    write_manifest(path, kept + list(entries))
