@@ -1,1 +1,11 @@
-"""Warp kernels: tactile forces, FEM strain, deformable pose and reward terms for all worlds."""
+"""Warp kernels: tactile forces, FEM strain, deformable pose and reward terms for all worlds.
+
+Submodules (import them directly; nothing here imports Warp):
+
+- :mod:`d3grasp.kernels.tactile`  -- pad forces from Newton contact rows, pad frames, noise, contact flags.
+- :mod:`d3grasp.kernels.strain`   -- Green-Lagrange max principal strain per tet/node/object, sigma.
+- :mod:`d3grasp.kernels.rotation` -- adaptive (sigma-selected) object rotation, CoM velocity.
+- :mod:`d3grasp.kernels.rewards`  -- every reward term of the paper for all worlds.
+"""
+
+__all__ = ["rewards", "rotation", "strain", "tactile"]

@@ -1,0 +1,184 @@
+"""Benchmarks: ``python -m d3grasp.bench kernels`` (and later ``env``).
+
+``kernels`` times one launch of each batched kernel group for 1, 16 and 256 worlds with realistic
+sizes per world: 11 pads on a 20-shape hand+object, 2000 contact rows (1000 rigid + 1000 soft, half
+active), one soft object of 512 nodes / 2058 tets (an 8x8x8 grid), 16 joints, 16 links, 16
+hand-to-table distances. Figures are medians over repeats after a warm-up, in ms per launch, plain
+launches (no graph capture) so the Python launch overhead is included. The ratio column compares
+tactile + strain + rewards with one physics substep of the grasp scene (the design target is <= 10%
+of one environment step); it prints "n/a" until the scene exists, unless ``--substep-ms`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+from types import SimpleNamespace
+
+import numpy as np
+
+__all__ = ["main", "physics_substep_ms"]
+
+
+def physics_substep_ms(num_worlds: int) -> float | None:
+    """Time of one captured physics substep of the grasp scene with ``num_worlds`` worlds, in ms.
+
+    Hook for the environment: returns None until the grasp scene exists (then: build the scene,
+    capture one substep, and return its median replay time).
+    """
+    del num_worlds
+    return None
+
+
+def _median_ms(fn: Callable[[], None], repeats: int, warmup: int = 2) -> float:
+    import warp as wp
+
+    for _ in range(warmup):
+        fn()
+    wp.synchronize()
+    samples = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        wp.synchronize()
+        samples.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(samples)
+
+
+def _kernel_fixtures(num_worlds: int, rng: np.random.Generator) -> dict[str, Callable[[], None]]:
+    """Device data for every kernel group at realistic per-world sizes; returns one closure per group."""
+    import warp as wp
+
+    from d3grasp.kernels import rewards, rotation, strain, tactile
+
+    w = num_worlds
+    # --- tactile: 20 shapes per world (11 pads), one ground shape, 2000 rows per world
+    shapes_per_world, rows = 20, 1000
+    n_shapes = 1 + w * shapes_per_world
+    shape_pad = np.full(n_shapes, -1)
+    shape_world = np.full(n_shapes, -1)
+    for i in range(w):
+        base = 1 + i * shapes_per_world
+        shape_world[base : base + shapes_per_world] = i
+        shape_pad[base : base + tactile.NUM_PADS] = np.arange(tactile.NUM_PADS)
+    shape_body = np.maximum(np.arange(n_shapes) - 1, -1)
+    layout = tactile.TactileLayout.from_arrays(
+        shape_pad, shape_world, shape_body, np.tile([0.0, 0.0, 0.0, 1.0], (n_shapes, 1)), w
+    )
+    rmax = smax = rows * w
+
+    def i32(a: np.ndarray) -> wp.array:
+        return wp.array(np.asarray(a, dtype=np.int32), dtype=wp.int32)
+
+    contacts = SimpleNamespace(
+        rigid_contact_max=rmax,
+        rigid_contact_count=i32([rmax // 2]),
+        rigid_contact_shape0=i32(rng.integers(0, n_shapes, rmax)),
+        rigid_contact_shape1=i32(rng.integers(0, n_shapes, rmax)),
+        soft_contact_count=i32([smax // 2]),
+        soft_contact_shape=i32(rng.integers(0, n_shapes, smax)),
+    )
+    contact_f = wp.array(rng.normal(size=(rmax + smax, 6)).astype(np.float32), dtype=wp.spatial_vector)
+    body_q = wp.array(
+        np.tile([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], (n_shapes, 1)).astype(np.float32), dtype=wp.transform
+    )
+    world_f = wp.zeros((w, tactile.NUM_PADS), dtype=wp.vec3)
+    pad_f = wp.zeros((w, tactile.NUM_PADS), dtype=wp.vec3)
+    pad_c = wp.zeros((w, tactile.NUM_PADS), dtype=float)
+    tcfg = tactile.TactileConfig(noise_std=0.05)
+
+    def run_tactile() -> None:
+        tactile.accumulate_pad_forces(layout, contacts, contact_f, world_f)
+        tactile.pad_frame_forces(layout, world_f, body_q, tcfg, pad_f, pad_c)
+
+    # --- strain and pose: one 512-node, 2058-tet object per world
+    rest1, tets1 = strain.grid_tet_mesh(8, 8, 8, spacing=0.008)
+    n1 = len(rest1)
+    rest = np.concatenate([rest1 + [0.5 * i, 0.0, 0.0] for i in range(w)])
+    tets = np.concatenate([tets1 + i * n1 for i in range(w)])
+    tet_obj = np.repeat(np.arange(w), len(tets1))
+    slayout = strain.StrainLayout.from_arrays(rest, tets, tet_obj, object_world=np.arange(w))
+    sbuf = strain.StrainBuffers.allocate(slayout)
+    points = wp.array((rest + 0.001 * rng.normal(size=rest.shape)).astype(np.float32), dtype=wp.vec3)
+    pose = rotation.ObjectPoseBuffers.allocate(slayout)
+
+    def run_strain() -> None:
+        strain.compute_strain(slayout, points, sbuf)
+        strain.compute_sigma(slayout, points, sbuf)
+
+    def run_pose() -> None:
+        rotation.compute_object_pose(slayout, points, sbuf.sigma, pose)
+        rotation.update_object_velocity(pose, 1.0 / 60.0)
+
+    # --- rewards: 16 joints, 16 links, 11 pads, 16 hand-to-table distances
+    j = 16
+    inp = rewards.make_inputs(
+        alive=np.ones(w),
+        joint_q=rng.uniform(0, 1.5, (w, j)),
+        joint_q_ref=np.zeros((w, j)),
+        joint_qd=rng.normal(size=(w, j)),
+        link_pos=rng.normal(size=(w, j, 3)) * 0.1,
+        object_com=rng.normal(size=(w, 3)) * 0.1,
+        pad_force=rng.normal(size=(w, tactile.NUM_PADS, 3)),
+        pad_contact=np.ones((w, tactile.NUM_PADS)),
+        obj_lin_vel=rng.normal(size=(w, 3)),
+        obj_ang_vel=rng.normal(size=(w, 3)),
+        env_dist=rng.uniform(0.0, 0.05, (w, j)),
+        eps_bar=rng.uniform(0, 0.2, w),
+        node_count=np.full(w, float(n1)),
+        is_deformable=np.ones(w, dtype=np.int32),
+    )
+    rbuf = rewards.RewardBuffers.allocate(rewards.RewardConfig(), w, j, tactile.NUM_PADS)
+
+    def run_rewards() -> None:
+        rewards.compute_rewards(inp, rbuf)
+
+    return {"tactile": run_tactile, "strain": run_strain, "pose": run_pose, "rewards": run_rewards}
+
+
+def _cmd_kernels(args: argparse.Namespace) -> int:
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    rng = np.random.default_rng(0)
+    with wp.ScopedDevice(args.device):
+        print(f"d3grasp kernel benchmark on {wp.get_device()} (Warp {wp.__version__}); ms per launch, median")
+        cols = ("tactile", "strain", "pose", "rewards", "t+s+r", "us/world")
+        print(f"{'worlds':>7} " + " ".join(f"{c:>9}" for c in cols) + "  ratio (t+s+r) / physics substep")
+        for w in args.worlds:
+            fns = _kernel_fixtures(w, rng)
+            ms = {name: _median_ms(fn, args.repeats) for name, fn in fns.items()}
+            tsr = ms["tactile"] + ms["strain"] + ms["rewards"]
+            substep = args.substep_ms if args.substep_ms is not None else physics_substep_ms(w)
+            ratio = "n/a until the grasp scene exists" if substep is None else f"{tsr / substep:.3f}"
+            print(
+                f"{w:>7} {ms['tactile']:>9.3f} {ms['strain']:>9.3f} {ms['pose']:>9.3f} {ms['rewards']:>9.3f}"
+                f" {tsr:>9.3f} {1e3 * tsr / w:>9.1f}  {ratio}"
+            )
+    return 0
+
+
+def _add_kernels_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("kernels", help="time tactile, strain, pose and reward kernels per launch")
+    p.add_argument("--worlds", type=int, nargs="+", default=[1, 16, 256], help="world counts")
+    p.add_argument("--repeats", type=int, default=20, help="timed repeats per kernel group (median reported)")
+    p.add_argument("--device", default="cpu", help="Warp device (default cpu)")
+    p.add_argument("--substep-ms", type=float, default=None, help="physics substep time [ms] to compare with")
+    p.set_defaults(func=_cmd_kernels)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m d3grasp.bench", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    _add_kernels_parser(sub)
+    args = parser.parse_args(argv)
+    if any(w < 1 for w in getattr(args, "worlds", [1])):
+        parser.error("--worlds must be positive")
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

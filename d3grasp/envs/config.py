@@ -1,0 +1,103 @@
+"""Configuration of the grasp environment: one dataclass per concern, gathered in GraspEnvConfig.
+
+Everything a task varies lives here, so a task is a ``GraspEnvConfig`` (plus, for training, a
+runner config). Times are in seconds and converted to control steps by the environment.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from d3grasp.kernels.rewards import RewardConfig
+from d3grasp.kernels.tactile import TactileConfig
+
+GRASP_TYPES: tuple[str, ...] = ("top", "side", "pinch")
+"""The three archetypal grasp types (the paper's directional diversity of 3): top power grasp
+(palm down over the object), side wrap (palm facing the object from the side) and precision
+pinch (index and thumb tips from above)."""
+
+
+@dataclass
+class SimConfig:
+    """Newton / SolverVBD settings (DESIGN.md §2: what holds a grasp on this stack)."""
+
+    control_hz: float = 60.0
+    substeps: int = 10
+    iterations: int = 5
+    use_graph: bool = True  # capture one control step as a Warp graph; False = plain loop (debug)
+    shape_mu: float = 1.0  # friction of hand and table shapes
+    soft_contact_ke: float = 1.0e4
+    soft_contact_kd: float = 1.0e-2
+    soft_contact_mu: float = 1.0
+    soft_contact_gap: float = 0.005
+    particle_radius: float = 0.003  # m; Newton's default (0.1 m) explodes small objects
+    soft_damping: float | None = None  # override every soft object's damping (else the manifest's)
+    table_height: float = 0.0  # z of the table surface (m)
+
+
+@dataclass
+class PhaseConfig:
+    """Episode schedule: pre-grasp → approach → grasp → lift → hold → disturb (→ release)."""
+
+    approach: float = 0.5  # root moves from pre-grasp to grasp pose
+    grasp: float = 1.0  # root still, the fingers close
+    lift: float = 1.0  # root rises lift_height on a smooth (cosine) profile
+    hold: float = 0.5
+    disturb_per_direction: float = 2.0
+    disturb_force: float = 2.5  # N, applied at the object's centre of mass
+    train_disturb_directions: int = 1  # training samples this many of the six directions
+    release: float = 0.0  # eval: open the hand at the end (not scored)
+    lift_height: float = 0.1
+    pregrasp_clearance: float = 0.04  # m the palm starts away from its grasp pose
+
+
+@dataclass
+class ObjectSetConfig:
+    """Which objects the worlds hold."""
+
+    manifest: str | None = None  # None = the shipped library
+    kinds: tuple[str, ...] = ("rigid", "deformable")
+    split: str = "train"  # train | test | all
+    size_bins: tuple[str, ...] = ("small", "medium", "large")
+    ids: tuple[str, ...] | None = None  # explicit asset ids (overrides the filters above)
+    soft_fraction: float = 0.5  # share of worlds given a soft object when both kinds are enabled
+
+
+@dataclass
+class ObservationConfig:
+    action_history: int = 3  # last k actions in the policy observation
+
+
+@dataclass
+class RandomizationConfig:
+    """Per-episode domain randomisation (uniform ranges, multiplicative where it says 'scale')."""
+
+    enabled: bool = True
+    friction: tuple[float, float] = (0.7, 1.2)
+    object_mass_scale: tuple[float, float] = (0.8, 1.2)
+    youngs_modulus_scale: tuple[float, float] = (0.7, 1.4)
+    object_xy: float = 0.01  # m, uniform in a square of this half-width
+    object_yaw: float = 3.14159  # rad, uniform in ±
+    tactile_noise_std: float = 0.05  # N
+    action_latency_steps: tuple[int, int] = (0, 1)  # control steps
+    drive_gain_scale: tuple[float, float] = (0.8, 1.2)
+
+
+@dataclass
+class GraspEnvConfig:
+    num_envs: int = 8
+    device: str = "cpu"
+    seed: int = 0
+    eval_mode: bool = False  # all six disturbance directions, no randomisation of dynamics
+    grasp_types: tuple[str, ...] = GRASP_TYPES
+    action_scale: float = 1.0  # actions in [-1, 1] map onto the joint range
+    action_smoothing: float = 0.5  # target = a * new + (1 - a) * previous target
+    privileged_obs: bool = True  # asymmetric critic input group
+    tactile_obs: bool = True  # False for the proprioception-only ablation
+    sim: SimConfig = field(default_factory=SimConfig)
+    phases: PhaseConfig = field(default_factory=PhaseConfig)
+    objects: ObjectSetConfig = field(default_factory=ObjectSetConfig)
+    obs: ObservationConfig = field(default_factory=ObservationConfig)
+    randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
+    rewards: RewardConfig = field(default_factory=RewardConfig)
+    tactile: TactileConfig = field(default_factory=TactileConfig)
