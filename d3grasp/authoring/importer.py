@@ -1,0 +1,338 @@
+"""Turning meshes into library assets: the logic behind ``d3grasp-assets import``.
+
+:func:`author_rigid` and :func:`author_soft` write one asset and return its manifest entry; the
+procedural library builders in ``tools/`` use them too, so imported and shipped assets have the
+same form. :func:`import_meshes` checks every input first, writes into a temporary directory and
+moves the result into place only when every mesh succeeded, so a failure leaves no partial
+output behind.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import tempfile
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from d3grasp.authoring.convex import MAX_HULL_VERTICES, MAX_HULLS, convex_decompose
+from d3grasp.authoring.manifest import AssetEntry, read_manifest, size_bin_of, write_manifest
+from d3grasp.authoring.meshcheck import MeshError, load_and_check
+from d3grasp.authoring.usd_rigid import mass_properties, write_rigid_usd
+
+# Defaults for imported meshes: a hard plastic for rigid objects, a foam for soft ones.
+DEFAULT_RIGID_DENSITY = 1000.0  # kg/m^3
+DEFAULT_RIGID_FRICTION = 0.8
+DEFAULT_SOFT_DENSITY = 200.0  # kg/m^3, polyurethane foam class
+DEFAULT_YOUNGS_MODULUS = 5.0e4  # Pa, soft sponge
+DEFAULT_POISSONS_RATIO = 0.3
+DEFAULT_SOFT_FRICTION = 1.0
+DEFAULT_TARGET_TETS = 800
+# Visual meshes above this many triangles are decimated (when fast-simplification is present)
+# to keep asset files small; collision uses hulls and does not depend on it.
+MAX_VISUAL_FACES = 4000
+
+RIGID_DIR = "objects/rigid"
+SOFT_DIR = "objects/soft"
+
+
+def asset_id_from_name(name: str) -> str:
+    """A valid USD prim name / manifest id from a file stem: ``"My mug (2)"`` -> ``"my_mug_2"``."""
+    s = re.sub(r"[^0-9a-zA-Z_]+", "_", name).strip("_").lower()
+    if not s:
+        s = "asset"
+    if s[0].isdigit():
+        s = "m_" + s
+    return s
+
+
+def centered(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Copy of ``mesh`` translated so its bounding-box centre is the origin (the body origin)."""
+    m = mesh.copy()
+    m.apply_translation(-0.5 * (m.bounds[0] + m.bounds[1]))
+    return m
+
+
+def _visual_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    if len(mesh.faces) <= MAX_VISUAL_FACES:
+        return mesh
+    try:
+        import fast_simplification
+    except ImportError:
+        return mesh
+    v, f = fast_simplification.simplify(
+        np.asarray(mesh.vertices, dtype=np.float32),
+        np.asarray(mesh.faces, dtype=np.int32),
+        target_reduction=1.0 - MAX_VISUAL_FACES / len(mesh.faces),
+    )
+    return trimesh.Trimesh(v, f, process=True)
+
+
+def author_rigid(
+    mesh: trimesh.Trimesh,
+    root: str | Path,
+    asset_id: str,
+    *,
+    family: str,
+    density: float,
+    friction: float,
+    split: str = "train",
+    source: str = "",
+    coacd_threshold: float = 0.08,
+    max_hulls: int = MAX_HULLS,
+    max_hull_vertices: int = MAX_HULL_VERTICES,
+    seed: int = 0,
+    color: tuple[float, float, float] = (0.7, 0.6, 0.5),
+    extra_material: dict[str, Any] | None = None,
+) -> AssetEntry:
+    """Write ``root/objects/rigid/<asset_id>.usda`` from a checked mesh; return its entry.
+
+    Mass properties come from the closed surface at ``density``; an open surface (allowed for
+    rigid imports) takes its volume from the collision hulls instead, which is what the
+    simulator collides with.
+    """
+    root = Path(root)
+    m = centered(mesh)
+    hulls = convex_decompose(
+        m, threshold=coacd_threshold, max_hulls=max_hulls, max_hull_vertices=max_hull_vertices, seed=seed
+    )
+    if m.is_watertight:
+        props = mass_properties(m, density)
+        volume_from = "surface"
+    else:
+        solid = trimesh.util.concatenate([trimesh.Trimesh(h.vertices, h.faces) for h in hulls])
+        props = mass_properties(solid, density)
+        volume_from = "hulls"
+    extents = [float(e) for e in m.extents]
+    size_bin = size_bin_of(max(extents))
+    rel = f"{RIGID_DIR}/{asset_id}.usda"
+    material = {"density": float(density), "friction": float(friction), **(extra_material or {})}
+    write_rigid_usd(
+        root / rel,
+        asset_id,
+        _visual_mesh(m),
+        hulls,
+        props,
+        density=density,
+        friction=friction,
+        color=color,
+        custom_data={"id": asset_id, "family": family, "size_bin": size_bin},
+    )
+    return AssetEntry(
+        id=asset_id,
+        path=rel,
+        kind="rigid",
+        family=family,
+        size_bin=size_bin,
+        extents=extents,
+        mass=float(props.mass),
+        volume=float(props.volume),
+        material=material,
+        split=split,  # type: ignore[arg-type]
+        stats={
+            "num_hulls": len(hulls),
+            "num_hull_vertices": [len(h.vertices) for h in hulls],
+            "volume_from": volume_from,
+        },
+        source=source,
+    )
+
+
+def surface_triangle_count(tets: np.ndarray) -> int:
+    """Number of boundary triangles of a tet mesh (faces used by exactly one tet)."""
+    t = np.asarray(tets, dtype=np.int64)
+    faces = np.concatenate([t[:, [0, 1, 2]], t[:, [0, 1, 3]], t[:, [0, 2, 3]], t[:, [1, 2, 3]]])
+    _, counts = np.unique(np.sort(faces, axis=1), axis=0, return_counts=True)
+    return int(np.count_nonzero(counts == 1))
+
+
+def tet_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Signed volumes of tets (positive for the x1-x0, x2-x0, x3-x0 right-handed order)."""
+    p = np.asarray(points, dtype=np.float64)[np.asarray(tets, dtype=np.int64)]
+    return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
+
+
+def author_soft(
+    mesh: trimesh.Trimesh,
+    root: str | Path,
+    asset_id: str,
+    *,
+    family: str,
+    youngs_modulus: float,
+    poissons_ratio: float,
+    density: float,
+    friction: float = DEFAULT_SOFT_FRICTION,
+    target_tets: int = DEFAULT_TARGET_TETS,
+    split: str = "train",
+    source: str = "",
+    extra_material: dict[str, Any] | None = None,
+    label: str | None = None,
+) -> AssetEntry:
+    """Tet-mesh a closed surface and write ``root/objects/soft/<asset_id>.usda``; return its entry.
+
+    Uses the soft-body authoring functions (:mod:`d3grasp.authoring.tetmesh`,
+    :mod:`d3grasp.authoring.usd_soft`). ``label`` names the input in errors (default: the id).
+    """
+    from d3grasp.authoring.tetmesh import tetrahedralize
+    from d3grasp.authoring.usd_soft import write_soft_usd
+
+    root = Path(root)
+    m = centered(mesh)
+    label = label or asset_id
+    try:
+        points, tets = tetrahedralize(m, target_tets)
+    except ValueError as exc:
+        raise MeshError(f"{label}: tet meshing failed ({exc})") from None
+    points = np.asarray(points, dtype=np.float64)
+    tets = np.asarray(tets, dtype=np.int64)
+    vols = tet_volumes(points, tets)
+    if len(tets) == 0 or np.any(vols <= 0):
+        raise MeshError(f"{label}: tet meshing produced {len(tets)} tets, some inverted or empty")
+    volume = float(vols.sum())
+    material = {
+        "density": float(density),
+        "friction": float(friction),
+        "youngs_modulus": float(youngs_modulus),
+        "poissons_ratio": float(poissons_ratio),
+        **(extra_material or {}),
+    }
+    extents = [float(e) for e in points.max(axis=0) - points.min(axis=0)]
+    try:
+        size_bin = size_bin_of(max(extents))
+    except ValueError as exc:  # the mesher can shrink a body that sat on a bin's lower edge
+        raise MeshError(f"{label}: after tet meshing, {exc}") from None
+    rel = f"{SOFT_DIR}/{asset_id}.usda"
+    write_soft_usd(
+        root / rel,
+        points,
+        tets,
+        material,
+        name=asset_id,
+        custom_data={"id": asset_id, "family": family, "size_bin": size_bin},
+    )
+    return AssetEntry(
+        id=asset_id,
+        path=rel,
+        kind="deformable",
+        family=family,
+        size_bin=size_bin,
+        extents=extents,
+        mass=density * volume,
+        volume=volume,
+        material=material,
+        split=split,  # type: ignore[arg-type]
+        stats={
+            "num_tets": len(tets),
+            "num_nodes": len(points),
+            "num_surface_triangles": surface_triangle_count(tets),
+        },
+        source=source,
+    )
+
+
+def _unique_ids(paths: list[Path], taken: set[str]) -> list[str]:
+    ids = []
+    used = set(taken)
+    for p in paths:
+        base = asset_id_from_name(p.stem)
+        aid, k = base, 1
+        while aid in used:
+            aid = f"{base}_{k}"
+            k += 1
+        used.add(aid)
+        ids.append(aid)
+    return ids
+
+
+def import_meshes(
+    paths: Iterable[str | Path],
+    out_dir: str | Path,
+    *,
+    deformable: bool = False,
+    scale: float = 1.0,
+    density: float | None = None,
+    friction: float | None = None,
+    youngs_modulus: float = DEFAULT_YOUNGS_MODULUS,
+    poissons_ratio: float = DEFAULT_POISSONS_RATIO,
+    target_tets: int = DEFAULT_TARGET_TETS,
+    family: str = "imported",
+    progress: Callable[[Iterable[Any]], Iterable[Any]] | None = None,
+) -> list[AssetEntry]:
+    """Import user meshes into the library at ``out_dir`` (USD files + ``out_dir/manifest.json``).
+
+    All meshes are checked before anything is written; any :class:`MeshError` aborts the whole
+    import with ``out_dir`` untouched. Entries whose ids already exist in ``out_dir``'s manifest
+    (re-imports of the same file name) replace the old ones; other entries are kept.
+    ``progress`` wraps the per-mesh loop (e.g. ``tqdm``).
+    """
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise ValueError("no mesh files given")
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"--scale must be a positive number, got {scale}")
+    if deformable:
+        if not (youngs_modulus > 0 and np.isfinite(youngs_modulus)):
+            raise ValueError(f"Young's modulus must be positive, got {youngs_modulus}")
+        if not (-1.0 < poissons_ratio < 0.5):
+            raise ValueError(f"Poisson's ratio must be in (-1, 0.5), got {poissons_ratio}")
+    rho = density if density is not None else (DEFAULT_SOFT_DENSITY if deformable else DEFAULT_RIGID_DENSITY)
+    if not (np.isfinite(rho) and rho > 0):
+        raise ValueError(f"density must be positive, got {rho}")
+    mu = (
+        friction
+        if friction is not None
+        else (DEFAULT_SOFT_FRICTION if deformable else DEFAULT_RIGID_FRICTION)
+    )
+    if not (np.isfinite(mu) and mu >= 0):
+        raise ValueError(f"friction must be non-negative, got {mu}")
+
+    out_dir = Path(out_dir)
+    manifest_path = out_dir / "manifest.json"
+    existing = read_manifest(manifest_path) if manifest_path.exists() else []
+    # Re-importing a file replaces its asset, so ids are made unique only among this batch.
+    ids = _unique_ids(paths, set())
+
+    # 1) Check everything before writing anything.
+    meshes = [load_and_check(p, scale=scale, require_watertight=deformable) for p in paths]
+
+    # 2) Author into a temporary directory next to the output (same file system: atomic moves).
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".d3grasp-import-", dir=out_dir.parent))
+    try:
+        entries: list[AssetEntry] = []
+        items = list(zip(paths, ids, meshes, strict=True))
+        for p, aid, mesh in progress(items) if progress else items:
+            src = f"import:{p.name}" + (f" scale={scale:g}" if scale != 1.0 else "")
+            if deformable:
+                e = author_soft(
+                    mesh,
+                    tmp,
+                    aid,
+                    family=family,
+                    youngs_modulus=youngs_modulus,
+                    poissons_ratio=poissons_ratio,
+                    density=rho,
+                    friction=mu,
+                    target_tets=target_tets,
+                    source=src,
+                    label=str(p),
+                )
+            else:
+                e = author_rigid(mesh, tmp, aid, family=family, density=rho, friction=mu, source=src)
+            entries.append(e)
+        # 3) Move into place, then write the merged manifest (atomically).
+        for e in entries:
+            dst = out_dir / e.path
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(tmp / e.path, dst)
+        new_ids = {e.id for e in entries}
+        kept = [e for e in existing if e.id not in new_ids]
+        write_manifest(manifest_path, kept + entries)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return entries

@@ -1,0 +1,258 @@
+"""``d3grasp-assets``: build, import, validate and list simulation assets.
+
+    d3grasp-assets build [--tools-dir DIR] [--out DIR] [--only hand,rigid,soft]
+    d3grasp-assets import MESH... --out DIR [--deformable --youngs-modulus E --poisson P]
+                          [--density RHO] [--friction MU] [--scale S] [--family NAME]
+    d3grasp-assets validate [DIR|MANIFEST] [--no-hand]
+    d3grasp-assets list [DIR|MANIFEST]
+
+Exit status: 0 success, 1 validation failure, 2 bad input (one line ``error: <file>: <reason>``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+EXIT_FAIL = 1
+EXIT_BAD_INPUT = 2
+
+
+def _progress(desc: str, unit: str = "asset"):
+    """A tqdm wrapper for the library functions' ``progress`` hooks (bars go to stderr)."""
+    from tqdm import tqdm
+
+    def wrap(items: Iterable[Any]) -> Iterable[Any]:
+        return tqdm(list(items), desc=desc, unit=unit, leave=False, file=sys.stderr)
+
+    return wrap
+
+
+def _error(msg: str) -> int:
+    print(f"error: {msg}", file=sys.stderr)
+    return EXIT_BAD_INPUT
+
+
+def _resolve_manifest(arg: str | None) -> Path:
+    from d3grasp.paths import default_manifest
+
+    if arg is None:
+        return default_manifest()
+    p = Path(arg)
+    return p / "manifest.json" if p.is_dir() else p
+
+
+# ---------------------------------------------------------------------------------- build
+
+
+def find_tools_dir(explicit: str | None = None) -> Path:
+    """The checkout's ``tools/`` directory: ``--tools-dir``, else next to the installed package.
+
+    Raises ``FileNotFoundError`` with a clear message when this is not a source checkout.
+    """
+    if explicit:
+        d = Path(explicit).resolve()
+        if not (d / "build_rigid_objects.py").is_file():
+            raise FileNotFoundError(f"{d}: not a d3grasp tools/ directory (no build_rigid_objects.py)")
+        return d
+    import d3grasp
+
+    d = Path(d3grasp.__file__).resolve().parents[1] / "tools"
+    if not (d / "build_rigid_objects.py").is_file():
+        raise FileNotFoundError(
+            "the build command needs a source checkout of d3grasp (tools/ not found next to the "
+            f"installed package at {d.parent}); clone the repository and run it there, or pass --tools-dir"
+        )
+    return d
+
+
+def _load_tool(tools_dir: Path, name: str) -> ModuleType:
+    path = tools_dir / f"{name}.py"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: builder not found")
+    spec = importlib.util.spec_from_file_location(f"d3grasp_tools_{name}", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses (and pickling) look the module up by name
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def cmd_build(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    try:
+        tools = find_tools_dir(args.tools_dir)
+    except FileNotFoundError as exc:
+        return _error(str(exc))
+    out = Path(args.out) if args.out else tools.parent / "assets_usd"
+    steps = [s.strip() for s in args.only.split(",")] if args.only else ["hand", "rigid", "soft"]
+    unknown = set(steps) - {"hand", "rigid", "soft"}
+    if unknown:
+        return _error(f"--only: unknown builders {sorted(unknown)} (choose from hand, rigid, soft)")
+    for step in tqdm(steps, desc="build", unit="builder", file=sys.stderr):
+        t0 = time.perf_counter()
+        if step == "hand":
+            mod = _load_tool(tools, "build_hand")
+            result = mod.build(out / "hands" / "dexhand13.usda")
+            print(f"hand: {result} ({time.perf_counter() - t0:.1f} s)")
+        else:
+            mod = _load_tool(tools, "build_rigid_objects" if step == "rigid" else "build_soft_objects")
+            entries = mod.build(out)
+            print(f"{step}: {len(entries)} assets ({time.perf_counter() - t0:.1f} s)")
+    print(f"library written to {out}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------- import
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from d3grasp.authoring.importer import import_meshes
+    from d3grasp.authoring.meshcheck import MeshError
+
+    kw: dict[str, Any] = {}
+    if args.youngs_modulus is not None:
+        kw["youngs_modulus"] = args.youngs_modulus
+    if args.poisson is not None:
+        kw["poissons_ratio"] = args.poisson
+    if not args.deformable and kw:
+        return _error("--youngs-modulus/--poisson only apply with --deformable")
+    try:
+        entries = import_meshes(
+            args.meshes,
+            args.out,
+            deformable=args.deformable,
+            scale=args.scale,
+            density=args.density,
+            friction=args.friction,
+            family=args.family,
+            progress=_progress("import", "mesh"),
+            **kw,
+        )
+    except (MeshError, ValueError, FileNotFoundError, ImportError) as exc:
+        return _error(str(exc))
+    for e in entries:
+        extra = (
+            f"{e.stats['num_hulls']} hulls"
+            if e.kind == "rigid"
+            else f"{e.stats['num_tets']} tets, {e.stats['num_nodes']} nodes"
+        )
+        dims = " x ".join(f"{x * 100:.1f}" for x in e.extents)
+        print(f"{e.id}: {e.kind}, {e.size_bin}, {dims} cm, {e.mass * 1e3:.1f} g, {extra} -> {e.path}")
+    print(f"{len(entries)} assets written; manifest {Path(args.out) / 'manifest.json'}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------- validate
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    import warp as wp
+
+    # Keep the summary table readable: no Warp banner or module-load lines on stdout.
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    from d3grasp.authoring.validate import validate_library
+
+    mpath = _resolve_manifest(args.path)
+    t0 = time.perf_counter()
+    try:
+        report = validate_library(mpath, hand=not args.no_hand, progress=_progress("validate"))
+    except (FileNotFoundError, ValueError) as exc:
+        return _error(str(exc))
+    print(report.table())
+    print(f"validated {len(report.assets)} assets in {time.perf_counter() - t0:.1f} s")
+    if not report.ok:
+        for f in report.failures()[:50]:
+            print(f"FAIL {f}", file=sys.stderr)
+        return EXIT_FAIL
+    return 0
+
+
+# ---------------------------------------------------------------------------------- list
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    from d3grasp.authoring.manifest import SIZE_BINS, read_manifest
+
+    mpath = _resolve_manifest(args.path)
+    try:
+        entries = read_manifest(mpath)
+    except (FileNotFoundError, ValueError) as exc:
+        return _error(str(exc))
+    print(f"manifest: {mpath.resolve()} ({len(entries)} assets)")
+    for kind in sorted({e.kind for e in entries}):
+        for b in SIZE_BINS:
+            es = sorted((e for e in entries if e.kind == kind and e.size_bin == b), key=lambda e: e.id)
+            if not es:
+                continue
+            lo, hi = SIZE_BINS[b]
+            print(f"\n{kind} / {b} ({lo * 100:g}-{hi * 100:g} cm): {len(es)}")
+            for e in es:
+                dims = "x".join(f"{x * 100:.1f}" for x in e.extents)
+                print(
+                    f"  {e.id:<20} {e.family:<13} {dims:>17} cm {e.mass * 1e3:7.1f} g  "
+                    f"{e.material.get('friction', '-')!s:>5}  {e.split}"
+                )
+    return 0
+
+
+# ---------------------------------------------------------------------------------- main
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="d3grasp-assets", description="Build, import, validate and list d3grasp assets."
+    )
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("build", help="regenerate the hand and object library from tools/ (slow)")
+    p.add_argument("--tools-dir", help="the checkout's tools/ directory (default: found next to the package)")
+    p.add_argument("--out", help="library root to write (default: assets_usd/ of the checkout)")
+    p.add_argument("--only", help="comma-separated subset of hand,rigid,soft")
+    p.set_defaults(func=cmd_build)
+
+    p = sub.add_parser("import", help="turn OBJ/STL/PLY/GLB meshes into USD assets + manifest")
+    p.add_argument("meshes", nargs="+", metavar="MESH")
+    p.add_argument("--out", required=True, help="output library directory (manifest.json is written there)")
+    p.add_argument(
+        "--deformable", action="store_true", help="make FEM tet soft bodies instead of rigid objects"
+    )
+    p.add_argument("--youngs-modulus", type=float, help="Young's modulus E in Pa (deformable; default 5e4)")
+    p.add_argument("--poisson", type=float, help="Poisson's ratio (deformable; default 0.3)")
+    p.add_argument("--density", type=float, help="kg/m^3 (default 1000 rigid, 200 deformable)")
+    p.add_argument("--friction", type=float, help="friction coefficient (default 0.8 rigid, 1.0 deformable)")
+    p.add_argument(
+        "--scale", type=float, default=1.0, help="uniform scale to metres (e.g. 0.001 for mm files)"
+    )
+    p.add_argument("--family", default="imported", help="family name recorded in the manifest")
+    p.set_defaults(func=cmd_import)
+
+    p = sub.add_parser("validate", help="load every asset in Newton and check it against the manifest")
+    p.add_argument(
+        "path", nargs="?", help="library directory or manifest.json (default: the shipped library)"
+    )
+    p.add_argument("--no-hand", action="store_true", help="skip the hand USD")
+    p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("list", help="print the library by kind and size bin")
+    p.add_argument(
+        "path", nargs="?", help="library directory or manifest.json (default: the shipped library)"
+    )
+    p.set_defaults(func=cmd_list)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
