@@ -90,6 +90,7 @@ class GraspEnvConfig:
     seed: int = 0
     eval_mode: bool = False  # all six disturbance directions, no randomisation of dynamics
     grasp_types: tuple[str, ...] = GRASP_TYPES
+    grasp_mode: str = "rule"  # rule: chosen from object size and shape; sample: uniform per episode
     action_scale: float = 1.0  # actions in [-1, 1] map onto the joint range
     action_smoothing: float = 0.5  # target = a * new + (1 - a) * previous target
     privileged_obs: bool = True  # asymmetric critic input group
