@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m d3grasp.bench kernels`` (and later ``env``).
+"""Benchmarks: ``python -m d3grasp.bench kernels`` and ``train`` (and later ``env``).
 
 ``kernels`` times one launch of each batched kernel group for 1, 16 and 256 worlds with realistic
 sizes per world: 11 pads on a 20-shape hand+object, 2000 contact rows (1000 rigid + 1000 soft, half
@@ -170,10 +170,43 @@ def _add_kernels_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_kernels)
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    # The training stack lives in d3grasp.train (which imports d3grasp): import it only when asked.
+    from d3grasp.train.benchmark import run_train_benchmark
+
+    run_train_benchmark(
+        args.task,
+        args.worlds,
+        args.procs,
+        args.iterations,
+        args.steps,
+        args.env_factory,
+        args.device,
+        torch_threads=args.torch_threads,
+    )
+    return 0
+
+
+def _add_train_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "train", help="end-to-end training throughput (env-steps/s incl. PPO update), 1..P procs"
+    )
+    p.add_argument("--task", default="D3Grasp-DexHand13-Mixed-v0", help="registered task")
+    p.add_argument("--worlds", type=int, nargs="+", default=[8, 16, 32], help="total world counts")
+    p.add_argument("--procs", type=int, nargs="+", default=[1, 2], help="process counts (torchrun for > 1)")
+    p.add_argument("--iterations", type=int, default=4, help="PPO iterations per run (the first is dropped)")
+    p.add_argument("--steps", type=int, default=24, help="rollout steps per world and iteration")
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--torch_threads", type=int, default=1, help="torch threads per process (default 1)")
+    p.add_argument("--env_factory", default=None, help="advanced: 'module:function' building the VecEnv")
+    p.set_defaults(func=_cmd_train)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m d3grasp.bench", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     _add_kernels_parser(sub)
+    _add_train_parser(sub)
     args = parser.parse_args(argv)
     if any(w < 1 for w in getattr(args, "worlds", [1])):
         parser.error("--worlds must be positive")

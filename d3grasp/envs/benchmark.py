@@ -51,7 +51,9 @@ def bench_one(kind: str, worlds: int, steps: int, device: str) -> dict[str, floa
 
 def run_env_benchmark(worlds: list[int], kinds: list[str], steps: int = 30, device: str = "cpu") -> None:
     print(f"env benchmark on {device}: median of {steps} control steps (60 Hz, substeps from SimConfig)")
-    print(f"{'kind':6s} {'worlds':>6s} {'make env s':>10s} {'env-steps/s':>12s} {'physics/s':>10s} {'step/physics':>12s}")
+    print(
+        f"{'kind':6s} {'worlds':>6s} {'make env s':>10s} {'env-steps/s':>12s} {'physics/s':>10s} {'step/physics':>12s}"
+    )
     for kind in kinds:
         for w in worlds:
             r = bench_one(kind, w, steps, device)
@@ -59,5 +61,7 @@ def run_env_benchmark(worlds: list[int], kinds: list[str], steps: int = 30, devi
                 f"{kind:6s} {w:6d} {r['make_s']:10.1f} {r['env_steps_per_s']:12.0f} "
                 f"{r['physics_steps_per_s']:10.0f} {r['ratio']:12.2f}"
             )
-    print("targets (2-core CPU, one process): >= 500 env-steps/s rigid and >= 100 soft at 8+ worlds; "
-          "step/physics <= 1.25")
+    print(
+        "targets (2-core CPU, one process): >= 500 env-steps/s rigid and >= 100 soft at 8+ worlds; "
+        "step/physics <= 1.25"
+    )

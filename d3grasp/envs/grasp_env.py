@@ -700,15 +700,15 @@ class GraspEnv:
         extras: dict[str, Any] = {"time_outs": time_out, "log": {}}
         terms = self.t_reward_terms
         for k, name in enumerate(rk.TERM_NAMES):
-            extras["log"][f"/reward/{name}"] = terms[:, k].mean()
+            extras["log"][f"Reward/{name}"] = terms[:, k].mean()
         finished = torch.nonzero(done).flatten()
         if len(finished):
             episodes = self._episode_records(finished)
             extras["episodes"] = episodes
             for key in ("s_grasp", "s_lift", "s_disturb"):
-                extras["log"][f"/metrics/{key}"] = float(np.mean([ep[key] for ep in episodes]))
+                extras["log"][f"Metrics/{key}"] = float(np.mean([ep[key] for ep in episodes]))
             self._reset(finished)
-        extras["log"]["/env/nonfinite_resets"] = float(self.nonfinite_resets)
+        extras["log"]["Env/nonfinite_resets"] = float(self.nonfinite_resets)
         self._obs = self._compute_observations()
         return self._obs, rew, done, extras
 

@@ -1,0 +1,515 @@
+"""Training and playing infrastructure: configs, runner, checkpoints, resume, export, multi-process.
+
+The tests run on the real grasp environment when ``d3grasp.envs.grasp_env`` exists, else on
+``StandInEnv`` below: a plumbing stand-in with the same VecEnv interface (observation groups of the
+task's sizes, auto-reset, time-outs, ``extras["log"]`` / ``extras["episodes"]``) and a trivial
+learnable reward. It checks the infrastructure only; it says nothing about grasping.
+
+References are independent of the code under test: a NumPy transcription of the LSTM policy
+(normaliser -> LSTM cell -> ELU MLP) for the export and hidden-state tests, counts from the config
+arithmetic for optimizer steps, hand-counted outcome tables.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+from d3grasp.train import train as train_mod
+from d3grasp.train.configs import fit_mini_batches, make_train_cfg
+from d3grasp.train.play import main as play_main
+from d3grasp.train.play import play
+from d3grasp.train.runner import (
+    CheckpointError,
+    D3GraspRunner,
+    EpisodeStats,
+    atomic_torch_save,
+    latest_checkpoint,
+    read_checkpoint,
+)
+from tensordict import TensorDict
+
+from d3grasp.envs import DEFAULT_TASK, TASKS, get_task
+
+TESTS_DIR = Path(__file__).resolve().parent
+REAL_ENV = importlib.util.find_spec("d3grasp.envs.grasp_env") is not None
+STANDIN_FACTORY = "test_train:make_standin_env"
+ENV_FACTORY = "d3grasp.envs:make_env" if REAL_ENV else STANDIN_FACTORY
+NUM_ACTIONS = 16
+
+
+# --------------------------------------------------------------------------- stand-in environment
+class StandInEnv:
+    """rsl-rl VecEnv with the grasp task's interface and sizes; reward = closeness of the action to a
+    per-episode target shown in the observation (so PPO has something to learn)."""
+
+    def __init__(
+        self,
+        task: str,
+        num_envs: int | None = None,
+        device: str = "cpu",
+        seed: int = 0,
+        episode_length: int = 6,
+    ) -> None:
+        self.cfg = get_task(task).make_cfg()
+        self.cfg.seed = seed
+        self.num_envs = int(num_envs or self.cfg.num_envs)
+        self.num_actions = NUM_ACTIONS
+        self.max_episode_length = episode_length  # short, so episodes end within a 2-iteration test
+        self.device = device
+        self.gen = torch.Generator().manual_seed(seed)
+        self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long)
+        # o_tac 11x3 (if tactile), joint pos/vel 16+16, 3 past actions 48, step + sin/cos 3
+        self.policy_dim = (33 if self.cfg.tactile_obs else 0) + 16 + 16 + 48 + 3
+        self.privileged_dim = 40
+        self.target = self._sample((self.num_envs, NUM_ACTIONS))
+        self.hist = torch.zeros(self.num_envs, 48)
+        self.err = torch.zeros(self.num_envs)
+        self.closed = False
+        self.episode_count = 0
+
+    def _sample(self, shape: tuple[int, ...]) -> torch.Tensor:
+        return torch.rand(shape, generator=self.gen) * 1.6 - 0.8
+
+    def get_observations(self) -> TensorDict:
+        n = self.num_envs
+        t = self.episode_length_buf.float().unsqueeze(1)
+        parts = [self.target, torch.zeros(n, 16), self.hist, t, torch.sin(t), torch.cos(t)]
+        if self.cfg.tactile_obs:
+            parts.insert(0, torch.tanh(self.hist[:, :33]))
+        policy = torch.cat(parts, dim=1)
+        privileged = torch.cat(
+            [self.target, self.err.unsqueeze(1), torch.zeros(n, self.privileged_dim - 17)], 1
+        )
+        return TensorDict({"policy": policy, "privileged": privileged}, batch_size=[n])
+
+    def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict[str, Any]]:
+        a = actions.clamp(-1.0, 1.0)
+        sq = (a - self.target).square().mean(dim=1)
+        self.err = sq
+        reward = 1.0 - sq
+        self.hist = torch.cat([a, self.hist[:, :32]], dim=1)
+        self.episode_length_buf = self.episode_length_buf + 1
+        time_outs = self.episode_length_buf >= self.max_episode_length
+        dones = time_outs.clone()
+        episodes = []
+        for i in torch.nonzero(dones).flatten().tolist():
+            kind = ("rigid", "deformable")[i % 2]
+            episodes.append(
+                {
+                    "env": i,
+                    "object": f"standin_{i}",
+                    "kind": kind,
+                    "size_bin": ("small", "medium", "large")[i % 3],
+                    "grasp_type": ("top", "side", "pinch")[self.episode_count % 3],
+                    "s_grasp": bool(sq[i] < 0.5),
+                    "s_lift": bool(sq[i] < 0.3),
+                    "s_disturb": bool(sq[i] < 0.2),
+                    "failure": None if sq[i] < 0.2 else "standin",
+                    "max_strain": 0.0 if kind == "rigid" else float(sq[i]),
+                }
+            )
+            self.episode_count += 1
+        if dones.any():
+            self.target[dones] = self._sample((int(dones.sum()), NUM_ACTIONS))
+            self.hist[dones] = 0.0
+            self.episode_length_buf[dones] = 0
+        extras = {
+            "time_outs": time_outs,
+            "log": {"Reward/closeness": reward.mean(), "Metrics/s_lift": float(sq.lt(0.3).float().mean())},
+            "episodes": episodes,
+        }
+        return self.get_observations(), reward, dones.float(), extras
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def make_standin_env(
+    task: str, num_envs: int | None = None, device: str = "cpu", seed: int = 0
+) -> StandInEnv:
+    return StandInEnv(task, num_envs=num_envs, device=device, seed=seed)
+
+
+@pytest.fixture(autouse=True)
+def _importable_standin(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.syspath_prepend(str(TESTS_DIR))
+    monkeypatch.setenv("GIT_PYTHON_REFRESH", "quiet")
+    for var in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "LOCAL_WORLD_SIZE"):
+        monkeypatch.delenv(var, raising=False)
+
+
+def _train_argv(
+    tmp: Path, task: str = DEFAULT_TASK, iters: int = 2, extra: tuple[str, ...] = ()
+) -> list[str]:
+    return [
+        "--task", task, "--num_envs", "2", "--max_iterations", str(iters), "--num_steps_per_env", "4",
+        "--log_root", str(tmp / "logs"), "--env_factory", ENV_FACTORY, "--torch_threads", "1", *extra,
+    ]  # fmt: skip
+
+
+def _run_dirs(tmp: Path, task: str = DEFAULT_TASK) -> list[Path]:
+    exp = tmp / "logs" / make_train_cfg(task)["experiment_name"]
+    return sorted(p for p in exp.iterdir() if p.is_dir())
+
+
+# --------------------------------------------------------------------------- NumPy reference policy
+def _np_elu(x: np.ndarray) -> np.ndarray:
+    return np.where(x > 0, x, np.expm1(np.minimum(x, 0)))
+
+
+def _np_sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+class NumpyLstmPolicy:
+    """Independent transcription of the deterministic actor: (x - mean) / (std + 0.01) -> LSTM cell
+    (PyTorch gate order i, f, g, o) -> Linear/ELU layers -> linear output = mean action."""
+
+    def __init__(self, state_dict: dict[str, torch.Tensor]) -> None:
+        sd = {k: v.detach().double().numpy() for k, v in state_dict.items()}
+        self.mean = sd["obs_normalizer._mean"][0]
+        self.std = sd["obs_normalizer._std"][0]
+        self.w_ih, self.w_hh = sd["rnn.rnn.weight_ih_l0"], sd["rnn.rnn.weight_hh_l0"]
+        self.b = sd["rnn.rnn.bias_ih_l0"] + sd["rnn.rnn.bias_hh_l0"]
+        idx = sorted({int(k.split(".")[1]) for k in sd if k.startswith("mlp.") and k.endswith(".weight")})
+        self.layers = [(sd[f"mlp.{i}.weight"], sd[f"mlp.{i}.bias"]) for i in idx]
+        self.hidden = self.w_hh.shape[1]
+
+    def zero_state(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros((n, self.hidden)), np.zeros((n, self.hidden))
+
+    def step(
+        self, obs: np.ndarray, h: np.ndarray, c: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        x = (obs - self.mean) / (self.std + 0.01)
+        z = x @ self.w_ih.T + h @ self.w_hh.T + self.b
+        i, f, g, o = np.split(z, 4, axis=1)
+        c = _np_sigmoid(f) * c + _np_sigmoid(i) * np.tanh(g)
+        h = _np_sigmoid(o) * np.tanh(c)
+        y = h
+        for k, (w, b) in enumerate(self.layers):
+            y = y @ w.T + b
+            if k < len(self.layers) - 1:
+                y = _np_elu(y)
+        return y, h, c
+
+
+# --------------------------------------------------------------------------- configs
+def test_train_cfg_per_task() -> None:
+    for name, spec in TASKS.items():
+        cfg = make_train_cfg(name)
+        assert cfg["obs_groups"]["actor"] == ["policy"]
+        assert cfg["obs_groups"]["critic"] == list(spec.critic_groups)
+        assert cfg["actor"]["class_name"] == "RNNModel" and cfg["actor"]["rnn_type"] == "lstm"
+        assert cfg["actor"]["obs_normalization"] and cfg["critic"]["obs_normalization"]
+        assert cfg["critic"]["class_name"] == "MLPModel"
+        assert cfg["algorithm"]["schedule"] == "fixed"
+    assert make_train_cfg("D3Grasp-DexHand13-Base-v0")["obs_groups"]["critic"] == ["policy"]
+    assert make_train_cfg(DEFAULT_TASK)["obs_groups"]["critic"] == ["policy", "privileged"]
+    cfg = make_train_cfg(DEFAULT_TASK, num_steps_per_env=8, algorithm={"learning_rate": 1e-3})
+    assert cfg["num_steps_per_env"] == 8 and cfg["algorithm"]["learning_rate"] == 1e-3
+    assert cfg["algorithm"]["gamma"] == 0.99  # merged, not replaced
+    with pytest.raises(ValueError, match="unknown runner config key"):
+        make_train_cfg(DEFAULT_TASK, num_step_per_env=8)
+    with pytest.raises(ValueError, match="learning_rat"):
+        make_train_cfg(DEFAULT_TASK, algorithm={"learning_rat": 1.0})
+
+
+@pytest.mark.parametrize(
+    ("req", "n", "want"), [(4, 2, 2), (4, 32, 4), (4, 6, 3), (4, 7, 1), (4, 1, 1), (4, 9, 3)]
+)
+def test_fit_mini_batches(req: int, n: int, want: int) -> None:
+    assert fit_mini_batches(req, n) == want
+
+
+def test_episode_stats_rates() -> None:
+    stats = EpisodeStats()
+    eps = [
+        {
+            "kind": "rigid",
+            "size_bin": "small",
+            "grasp_type": "top",
+            "s_grasp": 1,
+            "s_lift": 1,
+            "s_disturb": 0,
+        },
+        {
+            "kind": "rigid",
+            "size_bin": "large",
+            "grasp_type": "top",
+            "s_grasp": 1,
+            "s_lift": 0,
+            "s_disturb": 0,
+        },
+        {"kind": "deformable", "size_bin": "small", "grasp_type": "pinch", "s_grasp": 0, "s_lift": 0},
+        {
+            "kind": "rigid",
+            "size_bin": "small",
+            "grasp_type": "side",
+            "s_grasp": 1,
+            "s_lift": 1,
+            "s_disturb": 1,
+        },
+    ]
+    stats.add(eps)
+    r = stats.rates()
+    assert r["Success/episodes"] == 4
+    assert r["Success/s_grasp/all"] == pytest.approx(3 / 4)
+    assert r["Success/s_lift/kind/rigid"] == pytest.approx(2 / 3)
+    assert r["Success/s_disturb/size/small"] == pytest.approx(1 / 3)
+    assert r["Success/s_grasp/kind/deformable"] == 0.0
+    assert "Success/s_grasp/size/medium" not in r  # no medium episode
+    assert r["Success/s_lift/grasp/top"] == pytest.approx(1 / 2)
+
+
+# --------------------------------------------------------------------------- checkpoints
+def test_atomic_save_keeps_old_file_on_failure(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "model_1.pt"
+    atomic_torch_save({"actor_state_dict": {"w": torch.ones(3)}, "iter": 1}, path)
+    real_save = torch.save
+
+    def failing_save(obj: Any, f: Any, *a: Any, **k: Any) -> None:
+        real_save({"partial": True}, f)
+        raise OSError("disk full")
+
+    monkeypatch.setattr(torch, "save", failing_save)
+    with pytest.raises(OSError, match="disk full"):
+        atomic_torch_save({"actor_state_dict": {"w": torch.zeros(3)}, "iter": 2}, path)
+    monkeypatch.undo()
+    data = read_checkpoint(path)
+    assert data["iter"] == 1 and torch.equal(data["actor_state_dict"]["w"], torch.ones(3))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model_1.pt"]  # no temp file left behind
+
+
+def test_checkpoint_discovery(tmp_path: Path) -> None:
+    for n in (2, 10, 9):
+        (tmp_path / f"model_{n}.pt").write_bytes(b"x")
+    (tmp_path / ".model_11.pt.abc.tmp").write_bytes(b"x")  # a save interrupted by a kill
+    assert latest_checkpoint(tmp_path).name == "model_10.pt"
+    assert latest_checkpoint(tmp_path, r"model_[29]\.pt").name == "model_9.pt"
+    with pytest.raises(CheckpointError, match="not found"):
+        read_checkpoint(tmp_path / "missing.pt")
+    with pytest.raises(CheckpointError, match="cannot read"):
+        read_checkpoint(tmp_path / "model_2.pt")
+
+
+# --------------------------------------------------------------------------- end to end
+def test_train_resume_play_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """2 iterations -> checkpoint -> resume 2 more -> play loads it -> exports match the eager policy."""
+    assert train_mod.main(_train_argv(tmp_path)) == 0
+    (run1,) = _run_dirs(tmp_path)
+    ckpt = run1 / "model_2.pt"
+    data = read_checkpoint(ckpt)
+    assert data["iter"] == 2
+    infos = data["infos"]
+    assert infos["task"] == DEFAULT_TASK and infos["num_actions"] == NUM_ACTIONS
+    assert set(infos["obs_sizes"]) >= {"policy", "privileged"}
+    assert (run1 / "params" / "agent.json").is_file() and (run1 / "params" / "env.json").is_file()
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run1))
+    events.Reload()
+    tags = set(events.Tags()["scalars"])
+    # rsl-rl's own scalars, the environment's log terms, throughput and grasp outcomes by group
+    assert {"Loss/surrogate", "Perf/env_steps_per_s", "Perf/simulation_share", "Success/episodes"} <= tags
+    assert any(re.search(r"(^|/)reward/", t, re.IGNORECASE) for t in tags)  # the env's reward terms
+    if not REAL_ENV:  # the stand-in's episodes end within these 8 steps; the grasp task's do not
+        assert {"Train/mean_reward", "Success/s_lift/all", "Success/s_disturb/kind/rigid"} <= tags
+    assert [e.step for e in events.Scalars("Perf/env_steps_per_s")] == [0, 1]
+    assert ckpt.stat().st_size < 10e6
+    # Adam steps: epochs x mini-batches per iteration (2 worlds -> 2 mini-batches of one world).
+    cfg = make_train_cfg(DEFAULT_TASK)["algorithm"]
+    per_it = cfg["num_learning_epochs"] * fit_mini_batches(cfg["num_mini_batches"], 2)
+    steps = {int(s["step"]) for s in data["optimizer_state_dict"]["state"].values()}
+    assert steps == {2 * per_it}
+
+    # Resume: a new run folder continues the count and the optimizer state.
+    assert train_mod.main(_train_argv(tmp_path, extra=("--resume", "--run_name", "more"))) == 0
+    run2 = _run_dirs(tmp_path)[-1]
+    assert run2.name.endswith("_more")
+    data2 = read_checkpoint(run2 / "model_4.pt")
+    assert data2["iter"] == 4
+    assert {int(s["step"]) for s in data2["optimizer_state_dict"]["state"].values()} == {4 * per_it}
+    assert not torch.equal(
+        data2["actor_state_dict"]["rnn.rnn.weight_ih_l0"], data["actor_state_dict"]["rnn.rnn.weight_ih_l0"]
+    )
+
+    # Play loads it, reports outcomes and exports.
+    result = play(
+        DEFAULT_TASK, run2 / "model_4.pt", num_envs=2, episodes=3, env_factory=ENV_FACTORY, latency_steps=20
+    )
+    assert len(result.episodes) == 3
+    assert result.rates["Success/episodes"] == 3
+    assert result.export is not None and result.export.jit.is_file() and result.export.onnx is not None
+    assert result.latency is not None and result.latency.jit_s > 0
+
+    # Exports vs eager vs a NumPy transcription, over a sequence with the LSTM state carried.
+    ref = NumpyLstmPolicy(data2["actor_state_dict"])
+    obs_dim = ref.w_ih.shape[1]
+    rng = np.random.default_rng(1)
+    seq = rng.normal(size=(12, 1, obs_dim)).astype(np.float32) * 2.0
+    jit = torch.jit.load(str(result.export.jit))
+    jit.reset()
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(result.export.onnx), providers=["CPUExecutionProvider"])
+    h, c = ref.zero_state(1)
+    hx, cx = np.zeros((1, 1, ref.hidden), np.float32), np.zeros((1, 1, ref.hidden), np.float32)
+    for t in range(len(seq)):
+        want, h, c = ref.step(seq[t].astype(np.float64), h, c)
+        got_jit = jit(torch.from_numpy(seq[t])).detach().numpy()
+        got_onnx, hx, cx = sess.run(None, {"obs": seq[t], "h_in": hx, "c_in": cx})
+        np.testing.assert_allclose(got_jit, want, atol=2e-5)
+        np.testing.assert_allclose(got_onnx, want, atol=2e-5)
+    # The state matters: the last step with a zero state gives a different action.
+    fresh, _, _ = ref.step(seq[-1].astype(np.float64), *ref.zero_state(1))
+    assert np.abs(fresh - want).max() > 1e-3
+
+
+def test_hidden_state_reset_for_finished_episodes(tmp_path: Path) -> None:
+    """During the rollout, a world whose episode ended restarts its LSTM from zero; others carry on."""
+    env = StandInEnv(DEFAULT_TASK, num_envs=3, seed=3, episode_length=12)
+    cfg = make_train_cfg(DEFAULT_TASK, num_steps_per_env=6)
+    cfg["algorithm"]["num_mini_batches"] = 1
+    runner = D3GraspRunner(env, cfg, log_dir=None, task_name=DEFAULT_TASK)
+    env.episode_length_buf = torch.tensor([env.max_episode_length - 3, 0, 5])  # world 0 ends at step 3
+    ref = NumpyLstmPolicy(runner.alg.get_policy().state_dict())
+    h, c = ref.zero_state(3)
+    obs = env.get_observations()
+    ended = np.zeros(3, dtype=bool)
+    with torch.inference_mode():
+        for _ in range(6):
+            runner.alg.act(obs)
+            mean = runner.alg.get_policy().output_mean.numpy()  # deterministic part of this step
+            want, h, c = ref.step(obs["policy"].double().numpy(), h, c)
+            np.testing.assert_allclose(mean, want, atol=1e-5)
+            obs, rew, dones, extras = env.step(torch.as_tensor(want, dtype=torch.float32))
+            runner.alg.process_env_step(obs, rew, dones, extras)
+            d = dones.numpy() > 0
+            ended |= d
+            h[d] = 0.0
+            c[d] = 0.0
+    assert ended.tolist() == [True, False, False]
+
+
+def test_bad_inputs_give_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert train_mod.main(_train_argv(tmp_path, task="D3Grasp-Nope-v0")) == 2
+    err = capsys.readouterr().err
+    assert "unknown task 'D3Grasp-Nope-v0'" in err and DEFAULT_TASK in err and "Traceback" not in err
+
+    assert (
+        play_main(
+            ["--task", DEFAULT_TASK, "--checkpoint", str(tmp_path / "nope.pt"), "--env_factory", ENV_FACTORY]
+        )
+        == 2
+    )
+    assert "checkpoint not found" in capsys.readouterr().err
+
+    assert train_mod.main(_train_argv(tmp_path, extra=("--resume",))) == 2
+    assert "nothing to resume" in capsys.readouterr().err
+
+    assert play_main(["--checkpoint", "x.pt", "--video", "out.gif"]) == 2
+    assert "not available yet" in capsys.readouterr().err
+
+
+def test_checkpoint_of_another_task_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Base (no touch, symmetric critic) has a smaller policy observation than Mixed."""
+    base = "D3Grasp-DexHand13-Base-v0"
+    assert train_mod.main(_train_argv(tmp_path, task=base, iters=1)) == 0
+    ckpt = _run_dirs(tmp_path, base)[0] / "model_1.pt"
+    code = play_main(
+        ["--task", DEFAULT_TASK, "--checkpoint", str(ckpt), "--env_factory", ENV_FACTORY, "--no_export"]
+    )
+    err = capsys.readouterr().err
+    assert code == 2 and "does not fit task" in err and "'policy'" in err and "Traceback" not in err
+
+
+@pytest.mark.slow
+def test_every_task_trains_and_plays(tmp_path: Path) -> None:
+    for task in TASKS:
+        assert train_mod.main(_train_argv(tmp_path, task=task)) == 0
+        ckpt = latest_checkpoint(_run_dirs(tmp_path, task)[-1])
+        assert ckpt.name == "model_2.pt"
+        result = play(task, ckpt, num_envs=2, episodes=2, env_factory=ENV_FACTORY, export=False)
+        assert len(result.episodes) == 2
+
+
+def _subprocess_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(TESTS_DIR), env.get("PYTHONPATH", "")])
+    env["GIT_PYTHON_REFRESH"] = "quiet"
+    return env
+
+
+@pytest.mark.slow
+def test_sigint_leaves_a_loadable_checkpoint(tmp_path: Path) -> None:
+    argv = _train_argv(tmp_path, iters=100000)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "d3grasp.train.train", *argv],
+        env=_subprocess_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    assert proc.stdout is not None
+    deadline = time.time() + 240
+    seen_iteration = False
+    for line in proc.stdout:
+        if "Learning iteration 2/" in line:  # the third iteration finished
+            seen_iteration = True
+            break
+        if time.time() > deadline:
+            break
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=120)
+    assert seen_iteration, out[-2000:]
+    assert proc.returncode == 0, out[-2000:]
+    ckpt = latest_checkpoint(_run_dirs(tmp_path)[-1])
+    data = read_checkpoint(ckpt)
+    assert data["iter"] >= 3 and ckpt.name == f"model_{data['iter']}.pt"
+
+
+_TORCHRUN_SCRIPT = """
+import os, sys, torch
+from d3grasp.train.cli_args import make_train_parser
+from d3grasp.train.train import run_training
+args = make_train_parser().parse_args(sys.argv[2:])
+runner = run_training(args)
+rank = int(os.environ["RANK"])
+torch.save({"actor": runner.alg.get_policy().state_dict(), "critic": runner.alg.critic.state_dict(),
+            "seed": runner.env.cfg.seed}, os.path.join(sys.argv[1], f"rank{rank}.pt"))
+"""
+
+
+@pytest.mark.slow
+def test_torchrun_two_cpu_ranks_hold_identical_weights(tmp_path: Path) -> None:
+    script = tmp_path / "ddp_train.py"
+    script.write_text(_TORCHRUN_SCRIPT)
+    cmd = [
+        sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+        str(script), str(tmp_path), *_train_argv(tmp_path),
+    ]  # fmt: skip
+    res = subprocess.run(cmd, env=_subprocess_env(), capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    r0 = torch.load(tmp_path / "rank0.pt")
+    r1 = torch.load(tmp_path / "rank1.pt")
+    assert r0["seed"] != r1["seed"]  # each rank simulated different worlds
+    for part in ("actor", "critic"):
+        for key, value in r0[part].items():
+            assert torch.equal(value, r1[part][key]), f"{part}.{key} differs between ranks"
+    # Normaliser statistics were pooled over both ranks' samples: 2 ranks x 2 worlds x 4 steps x 2 iterations.
+    assert int(r0["actor"]["obs_normalizer.count"]) == 2 * 2 * 4 * 2
+    (run,) = _run_dirs(tmp_path)  # only rank 0 writes a run folder
+    data = read_checkpoint(run / "model_2.pt")
+    assert torch.equal(data["actor_state_dict"]["mlp.0.weight"], r0["actor"]["mlp.0.weight"])

@@ -1,0 +1,125 @@
+"""rsl-rl 5.5 runner configuration of every registered task, in one place.
+
+A task (``d3grasp.envs.registry``) names an environment config; this module pairs it with the
+runner/PPO config that trains it. ``make_train_cfg(task)`` returns the plain dict rsl-rl 5.5's
+``OnPolicyRunner`` reads (its 5.x schema: ``actor``/``critic`` model sections with their own
+``obs_normalization`` and a ``distribution_cfg`` on the actor; 2.x-4.x keys such as ``policy`` or
+``empirical_normalization`` raise errors there).
+
+Why these hyper-parameters (DESIGN.md §6): on a laptop CPU a rollout batch is small (e.g. 32 worlds x
+24 steps = 768 samples). rsl-rl's adaptive learning-rate schedule then sees noisy KL estimates
+and drives the rate to its 1e-5 floor within a few dozen iterations, after which nothing learns.
+A fixed 3e-4 with 5 epochs x 4 mini-batches and clip 0.2 keeps the per-update policy change
+bounded by the clip instead. The recurrent actor (LSTM 128 -> MLP [128, 64]) sees only what a real
+hand senses (touch, proprioception, phase clock); the critic MLP reads the privileged group too
+(the asymmetric actor-critic of the paper) except in the Base / BaseTactile ablations.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+from d3grasp.envs.registry import DEFAULT_TASK, get_task
+
+__all__ = ["DEFAULT_TASK", "experiment_name", "fit_mini_batches", "make_train_cfg"]
+
+# Shared by every task; per-task differences are applied in make_train_cfg.
+_BASE_CFG: dict[str, Any] = {
+    "num_steps_per_env": 24,  # rollout length per world and iteration = truncated-BPTT window of the LSTM
+    "max_iterations": 1500,
+    "save_interval": 50,
+    "check_for_nan": True,
+    "logger": "tensorboard",
+    "run_name": "",
+    # Random initial episode lengths de-synchronise the worlds' phase schedules. Off by default: the
+    # grasp episode is a scripted phase sequence, and starting a world mid-lift is not meaningful
+    # physics. Worlds de-synchronise anyway through early terminations.
+    "init_at_random_ep_len": False,
+    "obs_groups": {"actor": ["policy"], "critic": ["policy", "privileged"]},
+    "actor": {
+        "class_name": "RNNModel",
+        "rnn_type": "lstm",
+        "rnn_hidden_dim": 128,
+        "rnn_num_layers": 1,
+        "hidden_dims": [128, 64],
+        "activation": "elu",
+        "obs_normalization": True,
+        "distribution_cfg": {
+            "class_name": "GaussianDistribution",
+            "init_std": 0.8,
+            "std_type": "scalar",
+        },
+    },
+    "critic": {
+        "class_name": "MLPModel",
+        "hidden_dims": [256, 128, 64],
+        "activation": "elu",
+        "obs_normalization": True,
+    },
+    "algorithm": {
+        "class_name": "PPO",
+        "learning_rate": 3.0e-4,
+        "schedule": "fixed",  # adaptive collapses to its floor at CPU batch sizes (module docstring)
+        "desired_kl": 0.01,  # only read by the adaptive schedule
+        "num_learning_epochs": 5,
+        "num_mini_batches": 4,
+        "clip_param": 0.2,
+        "gamma": 0.99,
+        "lam": 0.95,
+        "value_loss_coef": 1.0,
+        "entropy_coef": 0.005,
+        "max_grad_norm": 1.0,
+        "use_clipped_value_loss": True,
+        "normalize_advantage_per_mini_batch": False,
+        "optimizer": "adam",
+    },
+}
+
+
+def experiment_name(task: str) -> str:
+    """Log folder name of a task: ``D3Grasp-DexHand13-Mixed-v0`` -> ``d3grasp_dexhand13_mixed_v0``."""
+    return task.lower().replace("-", "_")
+
+
+def make_train_cfg(task: str = DEFAULT_TASK, **overrides: Any) -> dict[str, Any]:
+    """The rsl-rl 5.5 runner config of a registered task (a fresh dict each call).
+
+    ``overrides`` replace top-level keys; nested sections merge one level deep, e.g.
+    ``make_train_cfg(task, num_steps_per_env=8, algorithm={"learning_rate": 1e-3})``.
+    Raises ``UnknownTaskError`` for an unregistered task and ``ValueError`` for an unknown key.
+    """
+    spec = get_task(task)
+    cfg = copy.deepcopy(_BASE_CFG)
+    cfg["experiment_name"] = experiment_name(task)
+    cfg["task"] = task
+    # Symmetric ablations: the critic sees the actor's input only.
+    cfg["obs_groups"]["critic"] = list(spec.critic_groups)
+    for key, value in overrides.items():
+        if key not in cfg:
+            raise ValueError(f"unknown runner config key '{key}'; valid: {sorted(cfg)}")
+        if isinstance(value, dict) and isinstance(cfg[key], dict) and key != "obs_groups":
+            unknown = set(value) - set(cfg[key]) - {"distribution_cfg"}
+            if key == "algorithm":
+                unknown -= {"rnd_cfg", "symmetry_cfg", "grad_reduce_bucket_mb", "use_mixed_precision"}
+            if unknown:
+                raise ValueError(f"unknown '{key}' config keys {sorted(unknown)}; valid: {sorted(cfg[key])}")
+            cfg[key].update(copy.deepcopy(value))
+        else:
+            cfg[key] = copy.deepcopy(value)
+    return cfg
+
+
+def fit_mini_batches(requested: int, num_envs: int) -> int:
+    """Largest mini-batch count <= ``requested`` that divides ``num_envs``.
+
+    rsl-rl splits recurrent rollouts into mini-batches *of worlds* (``num_envs // num_mini_batches``
+    worlds each): more mini-batches than worlds gives empty batches (NaN losses), and a count that
+    does not divide the worlds silently drops the remainder from every update.
+    """
+    if num_envs < 1:
+        raise ValueError(f"num_envs must be positive, got {num_envs}")
+    for n in range(min(requested, num_envs), 0, -1):
+        if num_envs % n == 0:
+            return n
+    return 1

@@ -1,0 +1,199 @@
+"""``d3grasp-play``: run a trained policy, report grasp outcomes, export it, time it.
+
+    d3grasp-play --task D3Grasp-DexHand13-Mixed-v0 --checkpoint logs/rsl_rl/<exp>/<run>/model_1000.pt \
+        [--num_envs 8] [--episodes 20]
+
+Prints one line per finished episode (object, kind, size bin, grasp type, s_grasp / s_lift /
+s_disturb, failure reason, peak strain) and the success rates overall and per kind / size bin /
+grasp type; writes ``exported/policy.pt`` (TorchScript) and ``exported/policy.onnx`` next to the
+checkpoint; reports the latency of 200 sequential single-robot policy steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
+
+import torch  # noqa: E402
+from d3grasp.train.cli_args import make_play_parser, resolve_torch_threads  # noqa: E402
+from d3grasp.train.configs import fit_mini_batches, make_train_cfg  # noqa: E402
+from d3grasp.train.export import ExportPaths, LatencyReport, export_policy, measure_latency  # noqa: E402
+from d3grasp.train.runner import CheckpointError, D3GraspRunner, EpisodeStats, read_checkpoint  # noqa: E402
+from d3grasp.train.train import DistInfo, load_env_factory, resolve_device, seed_everything  # noqa: E402
+
+from d3grasp.envs.registry import UnknownTaskError, get_task  # noqa: E402
+
+__all__ = ["PlayResult", "format_episode", "main", "play"]
+
+
+@dataclass
+class PlayResult:
+    episodes: list[dict[str, Any]] = field(default_factory=list)
+    rates: dict[str, float] = field(default_factory=dict)
+    steps: int = 0
+    export: ExportPaths | None = None
+    latency: LatencyReport | None = None
+
+
+def _mark(flag: Any) -> str:
+    return "yes" if flag else "no"
+
+
+def format_episode(n: int, ep: dict[str, Any]) -> str:
+    strain = ep.get("max_strain")
+    return (
+        f"{n:>4} env {ep.get('env', '?'):>3}  {str(ep.get('object', '?')):<20} "
+        f"{str(ep.get('kind', '?')):<10} "
+        f"{str(ep.get('size_bin', '?')):<6} {str(ep.get('grasp_type', '?')):<5}  "
+        f"grasp {_mark(ep.get('s_grasp')):<3} lift {_mark(ep.get('s_lift')):<3} "
+        f"disturb {_mark(ep.get('s_disturb')):<3}  "
+        f"max_strain {float(strain) if strain is not None else float('nan'):.4f}  "
+        f"failure: {ep.get('failure') or '-'}"
+    )
+
+
+def play(
+    task: str,
+    checkpoint: str | os.PathLike[str],
+    num_envs: int | None = None,
+    episodes: int = 10,
+    device: str = "cpu",
+    seed: int = 0,
+    export: bool = True,
+    latency_steps: int = 200,
+    env_factory: str | Callable[..., Any] = "d3grasp.envs:make_env",
+    max_steps: int | None = None,
+    log: Callable[[str], None] = print,
+) -> PlayResult:
+    """Evaluate the checkpoint's deterministic policy until ``episodes`` episodes finished.
+
+    The checkpoint is checked against the task's observation sizes before any weights load
+    (``CheckpointError`` on mismatch or a missing file). The LSTM state of a world is zeroed when
+    its episode ends, as in training.
+    """
+    get_task(task)
+    ckpt = Path(checkpoint)
+    data = read_checkpoint(ckpt)  # missing / unreadable file fails here, before the env is built
+    device = resolve_device(device, DistInfo())
+    make = load_env_factory(env_factory) if isinstance(env_factory, str) else env_factory
+    seed_everything(seed)
+    env = make(task, num_envs=num_envs, device=device, seed=seed)
+    result = PlayResult()
+    try:
+        cfg = make_train_cfg(task)
+        cfg["algorithm"]["num_mini_batches"] = fit_mini_batches(
+            cfg["algorithm"]["num_mini_batches"], env.num_envs
+        )
+        # Build the networks as the checkpoint was trained (its saved model sections), not today's defaults.
+        infos = data.get("infos") or {}
+        for section in ("actor", "critic"):
+            if isinstance(infos.get(section), dict):
+                cfg[section] = infos[section]
+        if isinstance(infos.get("obs_groups"), dict) and "actor" in infos["obs_groups"]:
+            cfg["obs_groups"]["actor"] = list(infos["obs_groups"]["actor"])
+        runner = D3GraspRunner(env, cfg, log_dir=None, device=device, task_name=task)
+        runner.load(str(ckpt), load_cfg={"actor": True})
+        policy = runner.get_inference_policy(device)
+        policy.reset()
+
+        stats = EpisodeStats()
+        limit = max_steps or int(2 * (math.ceil(episodes / env.num_envs) + 1) * int(env.max_episode_length))
+        log(f"[d3grasp] playing {ckpt} (iteration {data.get('iter')}) on {task}, {env.num_envs} worlds")
+        obs = env.get_observations()
+        with torch.inference_mode():
+            while len(result.episodes) < episodes and result.steps < limit:
+                actions = policy(obs.to(device))
+                obs, _, dones, extras = env.step(actions.to(env.device))
+                policy.reset(dones.to(device))  # fresh LSTM state for worlds that start a new episode
+                result.steps += 1
+                for ep in extras.get("episodes", ()):
+                    if len(result.episodes) >= episodes:
+                        break
+                    result.episodes.append(ep)
+                    stats.add([ep])
+                    log(format_episode(len(result.episodes), ep))
+        if len(result.episodes) < episodes:
+            log(f"[d3grasp] warning: only {len(result.episodes)} episodes finished in {result.steps} steps")
+        result.rates = stats.rates()
+        for line in _summary_lines(stats):
+            log(line)
+
+        if export:
+            actor = runner.alg.get_policy()
+            obs_sizes = runner.observation_sizes()
+            meta = {
+                "task": task,
+                "checkpoint": ckpt.name,
+                "iteration": data.get("iter"),
+                "obs_groups": ",".join(actor.obs_groups),
+                "obs_dim": int(actor.obs_dim),
+                "num_actions": int(env.num_actions),
+                "obs_sizes": obs_sizes,
+            }
+            result.export = export_policy(actor, ckpt.parent / "exported", metadata=meta)
+            log(f"[d3grasp] exported {result.export.jit} and {result.export.onnx}")
+            result.latency = measure_latency(actor, result.export, int(actor.obs_dim), steps=latency_steps)
+            for line in result.latency.lines():
+                log(line)
+    finally:
+        close = getattr(env, "close", None)
+        if close is not None:
+            close()
+    return result
+
+
+def _summary_lines(stats: EpisodeStats) -> list[str]:
+    counts = stats.counts
+    lines = [f"{'group':<18}{'episodes':>9}{'s_grasp':>9}{'s_lift':>9}{'s_disturb':>10}"]
+    for i, group in enumerate(stats.groups):
+        n = float(counts[i, 0])
+        if n == 0:
+            continue
+        rates = [100.0 * float(counts[i, 1 + j]) / n for j in range(3)]
+        lines.append(f"{group:<18}{int(n):>9}{rates[0]:>8.1f}%{rates[1]:>8.1f}%{rates[2]:>9.1f}%")
+    return lines
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args: argparse.Namespace = make_play_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+    if args.video is not None:
+        print(
+            "d3grasp-play: error: --video is not available yet (rendering comes in a later release)",
+            file=sys.stderr,
+        )
+        return 2
+    torch.set_num_threads(resolve_torch_threads(args.torch_threads))
+    try:
+        play(
+            args.task,
+            args.checkpoint,
+            num_envs=args.num_envs,
+            episodes=args.episodes,
+            device=args.device,
+            seed=args.seed,
+            export=not args.no_export,
+            latency_steps=args.latency_steps,
+            env_factory=args.env_factory,
+            max_steps=args.max_steps,
+        )
+    except (UnknownTaskError, CheckpointError, ValueError, FileNotFoundError) as exc:
+        if os.getenv("D3GRASP_DEBUG"):
+            raise
+        print(f"d3grasp-play: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("d3grasp-play: aborted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

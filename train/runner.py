@@ -1,0 +1,467 @@
+"""rsl-rl's on-policy runner extended for d3grasp: CPU multi-process, safe checkpoints, grasp metrics.
+
+What ``D3GraspRunner`` changes in rsl-rl 5.5.1's ``OnPolicyRunner`` and why:
+
+- Distributed training: rsl-rl initialises NCCL and requires ``cuda:<local_rank>``. Here CPU ranks use
+  gloo (one process per core, each simulating its own worlds) and CUDA ranks NCCL; PPO's gradient
+  all-reduce, parameter broadcast and normaliser statistics already go through ``torch.distributed``
+  and work unchanged on gloo.
+- Checkpoints are written atomically (temp file in the same folder, fsync, ``os.replace``) and carry
+  the task name and observation sizes, so loading a checkpoint of another task fails with a clear
+  message before any weights are touched. SIGINT/SIGTERM stop training at the next environment step
+  and save a checkpoint of the last completed update; a hard kill leaves the previous checkpoint
+  intact.
+- The iteration counter in a checkpoint is the number of *completed* iterations, and resuming starts
+  at that number (rsl-rl stores the index of the last iteration and repeats it on resume).
+- Per-iteration timings (simulation vs policy vs update) and grasp outcomes from the environment's
+  ``extras["episodes"]`` (success per object kind, size bin and grasp type, summed over ranks) go to
+  TensorBoard next to rsl-rl's own scalars.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import signal
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")  # rsl_rl imports GitPython; a git binary is optional
+
+import torch  # noqa: E402
+from rsl_rl.runners import OnPolicyRunner  # noqa: E402
+from rsl_rl.utils import check_nan  # noqa: E402
+
+__all__ = [
+    "CheckpointError",
+    "D3GraspRunner",
+    "EpisodeStats",
+    "IterationTiming",
+    "atomic_torch_save",
+    "checkpoint_iteration",
+    "latest_checkpoint",
+    "read_checkpoint",
+]
+
+CHECKPOINT_RE = re.compile(r"^model_(\d+)\.pt$")
+
+# Fixed group keys so every rank's outcome counts line up in one all-reduced tensor.
+_KINDS = ("rigid", "deformable")
+_SIZE_BINS = ("small", "medium", "large")
+_GRASP_TYPES = ("top", "side", "pinch")
+_METRICS = ("s_grasp", "s_lift", "s_disturb")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, unreadable or trained for different observations."""
+
+
+@dataclass
+class IterationTiming:
+    """Wall time of one training iteration, in seconds, and the env-steps it collected (all ranks)."""
+
+    iteration: int
+    sim_s: float  # inside env.step
+    rollout_s: float  # whole rollout: policy inference + env.step + storage
+    update_s: float  # returns + PPO update (incl. gradient all-reduce)
+    env_steps: int
+
+    @property
+    def total_s(self) -> float:
+        return self.rollout_s + self.update_s
+
+
+class EpisodeStats:
+    """Counts of grasp outcomes over finished episodes, grouped by kind, size bin and grasp type."""
+
+    groups: tuple[str, ...] = (
+        ("all",)
+        + tuple(f"kind/{k}" for k in _KINDS)
+        + tuple(f"size/{s}" for s in _SIZE_BINS)
+        + tuple(f"grasp/{g}" for g in _GRASP_TYPES)
+    )
+
+    def __init__(self) -> None:
+        self.counts = torch.zeros(len(self.groups), 1 + len(_METRICS), dtype=torch.float64)
+        self._index = {g: i for i, g in enumerate(self.groups)}
+
+    def add(self, episodes: list[dict[str, Any]]) -> None:
+        for ep in episodes:
+            row = torch.tensor([1.0] + [float(bool(ep.get(m, False))) for m in _METRICS], dtype=torch.float64)
+            keys = [
+                "all",
+                f"kind/{ep.get('kind')}",
+                f"size/{ep.get('size_bin')}",
+                f"grasp/{ep.get('grasp_type')}",
+            ]
+            for key in keys:
+                i = self._index.get(key)
+                if i is not None:
+                    self.counts[i] += row
+
+    def all_reduce(self) -> None:
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            torch.distributed.all_reduce(self.counts, op=torch.distributed.ReduceOp.SUM)
+
+    def rates(self) -> dict[str, float]:
+        """``{"Success/<metric>/<group>": rate}`` for groups with at least one episode."""
+        out: dict[str, float] = {}
+        for i, group in enumerate(self.groups):
+            n = float(self.counts[i, 0])
+            if n > 0:
+                for j, m in enumerate(_METRICS):
+                    out[f"Success/{m}/{group}"] = float(self.counts[i, 1 + j]) / n
+        out["Success/episodes"] = float(self.counts[0, 0])
+        return out
+
+    def clear(self) -> None:
+        self.counts.zero_()
+
+
+def atomic_torch_save(obj: Any, path: str | os.PathLike[str]) -> None:
+    """``torch.save`` that never leaves a truncated file at ``path``: temp file, fsync, rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    # Make the rename itself durable (the directory entry).
+    with contextlib.suppress(OSError):
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+
+
+def checkpoint_iteration(path: str | os.PathLike[str]) -> int | None:
+    m = CHECKPOINT_RE.match(Path(path).name)
+    return int(m.group(1)) if m else None
+
+
+def latest_checkpoint(run_dir: str | os.PathLike[str], pattern: str | None = None) -> Path:
+    """The checkpoint with the highest iteration in ``run_dir`` (optionally names matching a regex)."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise CheckpointError(f"run folder not found: {run_dir}")
+    rx = re.compile(pattern) if pattern else None
+    found = [
+        p
+        for p in run_dir.iterdir()
+        if p.is_file() and CHECKPOINT_RE.match(p.name) and (rx is None or rx.fullmatch(p.name))
+    ]
+    if not found:
+        what = f"matching '{pattern}' " if pattern else ""
+        raise CheckpointError(f"no checkpoint model_<N>.pt {what}in {run_dir}")
+    return max(found, key=lambda p: checkpoint_iteration(p) or 0)
+
+
+def read_checkpoint(path: str | os.PathLike[str], map_location: str = "cpu") -> dict[str, Any]:
+    """Load a checkpoint dict, turning a missing or unreadable file into a one-line ``CheckpointError``."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    try:
+        data = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as exc:  # pickle / zip errors have many types
+        raise CheckpointError(f"cannot read checkpoint {path}: {type(exc).__name__}: {exc}") from None
+    if not isinstance(data, dict) or "actor_state_dict" not in data:
+        raise CheckpointError(f"{path} is not an rsl-rl 5.x checkpoint (no 'actor_state_dict')")
+    return data
+
+
+class _StopFlag:
+    """SIGINT/SIGTERM handler: the first signal asks training to stop cleanly, a second one aborts."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: dict[int, Any] = {}
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.requested:  # second signal: give up on the clean stop
+            raise KeyboardInterrupt
+        self.requested = True
+        print(f"\n[d3grasp] {signal.Signals(signum).name}: stopping and saving a checkpoint (again to abort)")
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator[_StopFlag]:
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            yield self  # signal handlers can only be set from the main thread
+            return
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handle)
+        try:
+            yield self
+        finally:
+            for sig, handler in self._previous.items():
+                signal.signal(sig, handler)
+
+
+class D3GraspRunner(OnPolicyRunner):
+    """rsl-rl ``OnPolicyRunner`` with CPU (gloo) multi-process training, atomic checkpoints that
+    know their task, a clean stop on SIGINT/SIGTERM, and grasp-outcome logging (module docstring)."""
+
+    def __init__(
+        self,
+        env: Any,
+        train_cfg: dict[str, Any],
+        log_dir: str | os.PathLike[str] | None = None,
+        device: str = "cpu",
+        task_name: str | None = None,
+    ) -> None:
+        self.task_name = task_name if task_name is not None else train_cfg.get("task")
+        super().__init__(env, train_cfg, None if log_dir is None else str(log_dir), device)
+        self.log_dir = None if log_dir is None else str(log_dir)
+        if self.gpu_global_rank != 0:
+            self.log_dir = None
+        self.timings: list[IterationTiming] = []
+        self.episode_stats = EpisodeStats()
+        self.stop_flag = _StopFlag()
+        self.logger._store_code_state = self._safe_store_code_state  # type: ignore[method-assign]
+
+    # ----------------------------------------------------------------- distributed
+    def _configure_multi_gpu(self) -> None:
+        """Like rsl-rl's, but gloo for CPU ranks and NCCL for ``cuda:<local_rank>`` ranks."""
+        self.gpu_world_size = int(os.getenv("WORLD_SIZE", "1"))
+        self.is_distributed = self.gpu_world_size > 1
+        if not self.is_distributed:
+            self.gpu_local_rank = 0
+            self.gpu_global_rank = 0
+            self.cfg["multi_gpu"] = None
+            return
+        self.gpu_local_rank = int(os.getenv("LOCAL_RANK", "0"))
+        self.gpu_global_rank = int(os.getenv("RANK", "0"))
+        if not 0 <= self.gpu_global_rank < self.gpu_world_size:
+            raise ValueError(f"RANK {self.gpu_global_rank} is outside WORLD_SIZE {self.gpu_world_size}")
+        self.cfg["multi_gpu"] = {
+            "global_rank": self.gpu_global_rank,
+            "local_rank": self.gpu_local_rank,
+            "world_size": self.gpu_world_size,
+        }
+        dev = torch.device(self.device)
+        if dev.type == "cuda":
+            expected = f"cuda:{self.gpu_local_rank}"
+            if str(dev) != expected:
+                raise ValueError(
+                    f"device '{self.device}' does not match local rank {self.gpu_local_rank}: "
+                    f"use '{expected}'"
+                )
+            torch.cuda.set_device(self.gpu_local_rank)
+            backend = "nccl"
+        elif dev.type == "cpu":
+            backend = "gloo"
+        else:
+            raise ValueError(f"distributed training supports cpu and cuda devices, not '{self.device}'")
+        if not torch.distributed.is_initialized():
+            torch.distributed.init_process_group(
+                backend=backend, rank=self.gpu_global_rank, world_size=self.gpu_world_size
+            )
+
+    # ----------------------------------------------------------------- training loop
+    def learn(self, num_learning_iterations: int, init_at_random_ep_len: bool = False) -> None:
+        """Run ``num_learning_iterations`` PPO iterations after the ``current_learning_iteration``
+        already completed; stops early (saving) on SIGINT/SIGTERM."""
+        env = self.env
+        if init_at_random_ep_len:
+            env.episode_length_buf = torch.randint_like(
+                env.episode_length_buf, high=int(env.max_episode_length)
+            )
+        obs = env.get_observations().to(self.device)
+        self.alg.train_mode()
+        if self.is_distributed:
+            self.alg.broadcast_parameters()  # identical initial weights on every rank
+        self.logger.init_logging_writer()
+
+        steps = int(self.cfg["num_steps_per_env"])
+        start_it = self.current_learning_iteration
+        total_it = start_it + num_learning_iterations
+        nan_check = self.cfg.get("check_for_nan", True)
+        saved_at = -1
+        with self.stop_flag.installed() as stop:
+            for it in range(start_it, total_it):
+                t_start = time.perf_counter()
+                sim_s = 0.0
+                interrupted = False
+                with torch.inference_mode():
+                    for _ in range(steps):
+                        if stop.requested and not self.is_distributed:
+                            interrupted = True  # weights are those of the last update: save them
+                            break
+                        actions = self.alg.act(obs)
+                        t_sim = time.perf_counter()
+                        obs, rewards, dones, extras = env.step(actions.to(env.device))
+                        sim_s += time.perf_counter() - t_sim
+                        if nan_check:
+                            check_nan(obs, rewards, dones)
+                        obs, rewards, dones = (
+                            obs.to(self.device),
+                            rewards.to(self.device),
+                            dones.to(self.device),
+                        )
+                        self.alg.process_env_step(obs, rewards, dones, extras)
+                        self.logger.process_env_step(rewards, dones, extras, None)
+                        self.episode_stats.add(extras.get("episodes", ()))
+                    if interrupted:
+                        break
+                    t_rollout = time.perf_counter()
+                    self.alg.compute_returns(obs)
+                loss_dict = self.alg.update()
+                t_end = time.perf_counter()
+                self.current_learning_iteration = it + 1
+
+                timing = IterationTiming(
+                    iteration=it,
+                    sim_s=sim_s,
+                    rollout_s=t_rollout - t_start,
+                    update_s=t_end - t_rollout,
+                    env_steps=steps * env.num_envs * self.gpu_world_size,
+                )
+                self.timings.append(timing)
+                self._log_iteration(it, start_it, total_it, timing, loss_dict)
+
+                done = self.current_learning_iteration
+                if self.log_dir is not None and done % int(self.cfg["save_interval"]) == 0:
+                    self.save(os.path.join(self.log_dir, f"model_{done}.pt"))
+                    saved_at = done
+                if self._agree_to_stop(stop.requested):
+                    break
+
+        if self.log_dir is not None:
+            if saved_at != self.current_learning_iteration:
+                self.save(os.path.join(self.log_dir, f"model_{self.current_learning_iteration}.pt"))
+            with open(os.path.join(self.log_dir, "timings.json"), "w", encoding="utf-8") as f:
+                import json
+
+                json.dump([asdict(t) for t in self.timings], f, indent=1)
+            self.logger.stop_logging_writer()
+            if self.logger.writer is not None and hasattr(self.logger.writer, "close"):
+                self.logger.writer.close()
+
+    def _agree_to_stop(self, local: bool) -> bool:
+        """All ranks stop together (a rank leaving early would hang the others' all-reduce)."""
+        if not self.is_distributed:
+            return local
+        flag = torch.tensor([1.0 if local else 0.0], device=self.device)
+        torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+        return bool(flag.item() > 0)
+
+    def _log_iteration(
+        self, it: int, start_it: int, total_it: int, timing: IterationTiming, loss_dict: dict[str, float]
+    ) -> None:
+        if self.is_distributed:
+            self.episode_stats.all_reduce()  # every rank takes part, rank 0 writes
+        self.logger.log(
+            it=it,
+            start_it=start_it,
+            total_it=total_it,
+            collect_time=timing.rollout_s,
+            learn_time=timing.update_s,
+            loss_dict=loss_dict,
+            learning_rate=self.alg.learning_rate,
+            action_std=self.alg.get_policy().output_std,
+            rnd_weight=None,
+        )
+        writer = self.logger.writer
+        if writer is not None:
+            writer.add_scalar("Perf/env_steps_per_s", timing.env_steps / max(timing.total_s, 1e-9), it)
+            writer.add_scalar("Perf/simulation_time", timing.sim_s, it)
+            writer.add_scalar("Perf/simulation_share", timing.sim_s / max(timing.total_s, 1e-9), it)
+            writer.add_scalar("Perf/update_share", timing.update_s / max(timing.total_s, 1e-9), it)
+            for key, value in self.episode_stats.rates().items():
+                writer.add_scalar(key, value, it)
+        self.episode_stats.clear()
+
+    def _safe_store_code_state(self) -> list[str]:
+        """rsl-rl records ``git diff`` of the code; without a git binary that raises: skip it then."""
+        try:
+            return type(self.logger)._store_code_state(self.logger)
+        except Exception as exc:  # GitPython raises its own command/exec errors
+            print(f"[d3grasp] not storing the code state (git unavailable: {type(exc).__name__})")
+            return []
+
+    # ----------------------------------------------------------------- checkpoints
+    def observation_sizes(self) -> dict[str, int]:
+        obs = self.env.get_observations()
+        # TensorDict iterates over its batch dimension, not its keys: .keys() is needed.
+        return {str(k): int(obs[k].shape[-1]) for k in obs.keys()}  # noqa: SIM118
+
+    def checkpoint_infos(self) -> dict[str, Any]:
+        """What a checkpoint must match to be loaded: task, observation sizes, action count, models."""
+        return {
+            "task": self.task_name,
+            "obs_sizes": self.observation_sizes(),
+            "obs_groups": {k: list(v) for k, v in self.cfg["obs_groups"].items()},
+            "num_actions": int(self.env.num_actions),
+            "actor": self.cfg["actor"],
+            "critic": self.cfg["critic"],
+        }
+
+    def save(self, path: str, infos: dict | None = None) -> None:
+        """Atomically save models, optimizer, completed-iteration count and ``checkpoint_infos()``."""
+        data = self.alg.save()
+        data["iter"] = self.current_learning_iteration
+        data["infos"] = {**self.checkpoint_infos(), **(infos or {})}
+        atomic_torch_save(data, path)
+        self.logger.save_model(path, self.current_learning_iteration)
+
+    def check_compatible(self, infos: dict[str, Any] | None, path: str, models: tuple[str, ...]) -> None:
+        """Raise ``CheckpointError`` if the checkpoint's models read observations of other sizes."""
+        if not infos or "obs_sizes" not in infos:
+            return  # a foreign rsl-rl checkpoint: load_state_dict will judge the shapes
+        mine = self.observation_sizes()
+        theirs = infos["obs_sizes"]
+        groups = {g for m in models for g in infos.get("obs_groups", {}).get(m, theirs)}
+        for model in models:
+            groups |= set(self.cfg["obs_groups"].get(model, []))
+        diff = {g: (theirs.get(g), mine.get(g)) for g in sorted(groups) if theirs.get(g) != mine.get(g)}
+        ckpt_actions = infos.get("num_actions", self.env.num_actions)
+        if diff or ckpt_actions != self.env.num_actions:
+            sizes = ", ".join(f"'{g}' {a} vs {b}" for g, (a, b) in diff.items())
+            if ckpt_actions != self.env.num_actions:
+                sizes += f"{', ' if sizes else ''}actions {ckpt_actions} vs {self.env.num_actions}"
+            raise CheckpointError(
+                f"checkpoint {path} was trained on task '{infos.get('task')}' and does not fit task "
+                f"'{self.task_name}' (checkpoint vs environment sizes: {sizes})"
+            )
+        if infos.get("task") and self.task_name and infos["task"] != self.task_name:
+            print(
+                f"[d3grasp] note: checkpoint trained on '{infos['task']}', running it on '{self.task_name}'"
+            )
+
+    def load(
+        self,
+        path: str,
+        load_cfg: dict | None = None,
+        strict: bool = True,
+        map_location: str | None = None,
+    ) -> dict:
+        """Load after checking the checkpoint fits this task; ``CheckpointError`` otherwise."""
+        data = read_checkpoint(path, map_location=map_location or str(self.device))
+        load_cfg = load_cfg or {"actor": True, "critic": True, "optimizer": True, "iteration": True}
+        models = tuple(m for m in ("actor", "critic") if load_cfg.get(m))
+        self.check_compatible(data.get("infos"), str(path), models)
+        try:
+            self.alg.load(data, load_cfg, strict)
+        except (RuntimeError, KeyError, ValueError) as exc:
+            first = str(exc).strip().splitlines()[0]
+            raise CheckpointError(
+                f"checkpoint {path} does not match the configured networks: {first}"
+            ) from None
+        if load_cfg.get("iteration"):
+            self.current_learning_iteration = int(data["iter"])
+        return data.get("infos") or {}
