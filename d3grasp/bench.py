@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m d3grasp.bench kernels`` and ``train`` (and later ``env``).
+"""Benchmarks: ``python -m d3grasp.bench kernels``, ``env`` and ``train``.
 
 ``kernels`` times one launch of each batched kernel group for 1, 16 and 256 worlds with realistic
 sizes per world: 11 pads on a 20-shape hand+object, 2000 contact rows (1000 rigid + 1000 soft, half
@@ -202,11 +202,28 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_train)
 
 
+def _cmd_env(args: argparse.Namespace) -> int:
+    from d3grasp.envs.benchmark import run_env_benchmark
+
+    run_env_benchmark(args.worlds, args.kinds, steps=args.steps, device=args.device)
+    return 0
+
+
+def _add_env_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("env", help="env-steps/s and physics steps/s, rigid and soft, vs world count")
+    p.add_argument("--worlds", type=int, nargs="+", default=[1, 8, 32], help="world counts")
+    p.add_argument("--kinds", nargs="+", default=["rigid", "soft"], choices=["rigid", "soft"])
+    p.add_argument("--steps", type=int, default=30, help="timed control steps (median)")
+    p.add_argument("--device", default="cpu", help="cpu or cuda:N")
+    p.set_defaults(func=_cmd_env)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m d3grasp.bench", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     _add_kernels_parser(sub)
     _add_train_parser(sub)
+    _add_env_parser(sub)
     args = parser.parse_args(argv)
     if any(w < 1 for w in getattr(args, "worlds", [1])):
         parser.error("--worlds must be positive")

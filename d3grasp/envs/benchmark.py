@@ -51,15 +51,14 @@ def bench_one(kind: str, worlds: int, steps: int, device: str) -> dict[str, floa
 
 def run_env_benchmark(worlds: list[int], kinds: list[str], steps: int = 30, device: str = "cpu") -> None:
     print(f"env benchmark on {device}: median of {steps} control steps (60 Hz, substeps from SimConfig)")
-    print(
-        f"{'kind':6s} {'worlds':>6s} {'make env s':>10s} {'env-steps/s':>12s} {'physics/s':>10s} {'step/physics':>12s}"
-    )
+    header = ("kind", "worlds", "make env s", "env-steps/s", "physics/s", "step/physics")
+    print(f"{header[0]:6s} " + " ".join(f"{h:>12s}" for h in header[1:]))
     for kind in kinds:
         for w in worlds:
             r = bench_one(kind, w, steps, device)
             print(
-                f"{kind:6s} {w:6d} {r['make_s']:10.1f} {r['env_steps_per_s']:12.0f} "
-                f"{r['physics_steps_per_s']:10.0f} {r['ratio']:12.2f}"
+                f"{kind:6s} {w:12d} {r['make_s']:12.1f} {r['env_steps_per_s']:12.0f} "
+                f"{r['physics_steps_per_s']:12.0f} {r['ratio']:12.2f}"
             )
     print(
         "targets (2-core CPU, one process): >= 500 env-steps/s rigid and >= 100 soft at 8+ worlds; "
