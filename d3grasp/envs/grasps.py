@@ -2,19 +2,41 @@
 
 Palm frame (``assets_usd/hands/README.md``): fingers along +x, thumb on -y, palmar side +z. The
 palm collider's front face is at x = 0.138 m and its palmar face at z = 0.0335 m; the fingers
-hinge at x = 0.135 m and, open, reach z ≈ 0.014 m on the palmar side. Flexing fingers sweep an
-object towards the wrist (-x), so every grasp puts a *backstop* on the object's -x side:
+hinge at x = 0.135 m and, open, lie in the palm plane (z -0.025..0.004). Curling all three
+flexion joints together (the baseline's constant-speed closing) sweeps a fingertip through
+(0.22, 0.07) at 0.4 rad, down to z ≈ 0.09 at x ≈ 0.16-0.18 near 0.8 rad and back to (0.12, 0.056)
+at 1.3 rad, so flexing fingers pull an object towards the wrist (-x) and every grasp puts a
+*backstop* on the object's -x side. The thumb (base x 0.04, y -0.037) opens sideways (tip at
+y -0.18) and swings under the front of the palm: tip near (0.12-0.16, -0.04..-0.06, 0.06-0.10).
 
-* ``top`` (power grasp, palm down): the object stands just in front of the palm's front face
-  (2 mm gap) under the open fingers, its top 17 mm below the palm plane, offset 2 cm towards the
-  thumb. Closing fingers press it against the palm's front face; the thumb closes across its -y
-  side. Measured with the scripted closure on a 9.5 x 3.4 x 6.6 cm box: 8 of 9 placements within
-  ±1.5 cm of this one lifted it by 0.1 m.
-* ``side`` (wrap, palm vertical): the same hand-object relation turned 90° about the fingers'
-  axis, so the fingers wrap horizontally and do not meet the table; the hand is raised until
-  its lower edge clears the table, which limits it to objects tall enough to reach the fingers.
-* ``pinch`` (precision, palm down): the object between the thumb tip and the index/middle tips,
-  which meet near x = 0.12 m, y = -0.033 m, z = 0.05 m when closed; for small objects.
+* ``top`` (hook, palm down): the object stands just in front of the palm's front face (2 mm gap),
+  its top 17 mm below the palm plane, so the front face backs 16 mm of it; 2 cm towards the
+  thumb. The fingers hook over its far (+x) face, the thumb closes across its -y side.
+* ``side`` (wrap, palm vertical): the same relation turned 90° about the fingers' axis, thumb up;
+  the hand is raised until its lower edge clears the table. On small objects the fingers close
+  round the object and cage it.
+* ``pinch`` (precision, palm down): the object under the front of the palm between the thumb
+  tip and the index/middle tips, which meet near (0.12, -0.033, 0.05) when closed.
+
+Measured (rule-based baseline, per-joint stopping, randomisation off, one episode per object,
+``python /tmp/g4/ev.py IDS TYPE``; lift = s_lift, 16 train objects: 5 small, 7 medium, 4 large):
+
+==========  =============  ==============  ============  ===========
+type        small          medium          large         all
+==========  =============  ==============  ============  ===========
+top         0/5            3/7             3/4           6/16
+side        2/5            1/7             1/4           4/16
+pinch       0/5            2/7             0/4           2/16
+==========  =============  ==============  ============  ===========
+
+Why they fail: objects lower than ~5 cm put the curling fingertips on the table (tip pads read
+~10 N from the table at 0.2-0.4 rad, which stops the baseline's joints) before they reach round
+the object; objects wider than ~7 cm along the palm's x are beyond the hook; bounding-box
+placement misses shaped objects (a bottle's neck). Moving the object 2 cm lower in the hand
+(top_z 0.037) lifted 2/16 instead of 6/16. :func:`choose_grasp` picks per object the type that
+measured best for its size class. On 16 other train objects (6 small, 6 medium, 4 large; 6 soft)
+the rule lifted 6/16 (small 2/6, medium 4/6, large 0/4; rigid 5/10, soft 1/6), 5/16 held under
+the disturbance.
 
 The grasp type only fixes the root pose and which fingers the scripted baseline closes; the
 policy always drives all 16 joints.
@@ -86,16 +108,29 @@ def side_feasible(extents: np.ndarray, table_height: float = 0.0) -> bool:
     return lateral <= 0.03
 
 
+SMALL_MAX_EXTENT = 0.05  # m: below this largest extent only the side wrap's closing fingers cage the object
+TOP_MAX_ALONG = 0.07  # m: the top hook's fingers reach round a short horizontal side up to this
+TOP_MIN_HEIGHT = 0.05  # m: lower objects put the curling fingertips on the table before they hook
+
+
 def choose_grasp(extents: np.ndarray, allowed: tuple[str, ...], table_height: float = 0.0) -> str:
-    """Rule on size and shape: small → pinch, tall → side wrap, otherwise top power grasp."""
+    """Rule on size and shape, from the baseline's measured success per type (module docstring).
+
+    Small (largest extent < 5 cm) → side wrap; tall enough (≥ 5 cm) with a short horizontal side
+    ≤ 7 cm → top hook; anything else (wide or flat) → pinch. Falls back along top, pinch, side to
+    the first allowed type.
+    """
+    del table_height  # the rule is on the object alone; kept for a table-aware rule later
     ex = np.asarray(extents, dtype=np.float64)
-    candidates = []
-    if max(ex) < 0.05:
-        candidates.append("pinch")
-    if ex[2] >= max(ex[0], ex[1]) and side_feasible(ex, table_height):
-        candidates.append("side")
-    candidates.append("top")
-    for name in candidates:
+    if ex.shape != (3,) or not np.all(ex > 0):
+        raise ValueError(f"extents must be three positive lengths, got {extents!r}")
+    if float(ex.max()) < SMALL_MAX_EXTENT:
+        preferred = "side"
+    elif float(ex[2]) >= TOP_MIN_HEIGHT and float(min(ex[0], ex[1])) <= TOP_MAX_ALONG:
+        preferred = "top"
+    else:
+        preferred = "pinch"
+    for name in (preferred, "top", "pinch", "side"):
         if name in allowed:
             return name
     return allowed[0]
