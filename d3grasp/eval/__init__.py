@@ -1,0 +1,1 @@
+"""Evaluation: success metrics aggregated into the paper's tables."""

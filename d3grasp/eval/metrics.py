@@ -1,0 +1,85 @@
+"""Aggregate per-episode outcomes into the paper's success table with 95% Wilson intervals.
+
+An episode record is the dict the environment returns in ``extras["episodes"]`` (keys used here:
+``kind``, ``size_bin``, ``s_grasp``, ``s_lift``, ``s_disturb``). Columns follow the paper's
+evaluation table: rigid objects by size bin (Small, Medium, Large), all deformable objects
+(Deformable), and every episode (Average). Success rates from a few hundred episodes carry
+several points of sampling error, so every rate comes with its Wilson score interval, which
+stays inside [0, 1] and behaves at 0% and 100% where the normal approximation does not.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+METRICS: tuple[str, ...] = ("s_grasp", "s_lift", "s_disturb")
+COLUMNS: tuple[str, ...] = ("Small", "Medium", "Large", "Deformable", "Average")
+_BIN_COLUMN = {"small": "Small", "medium": "Medium", "large": "Large"}
+
+
+def wilson_interval(successes: int, trials: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (default 95%). (0, 0) ... for no trials: NaNs."""
+    if trials < 0 or successes < 0 or successes > trials:
+        raise ValueError(f"need 0 <= successes <= trials, got {successes}/{trials}")
+    if trials == 0:
+        return (math.nan, math.nan)
+    p = successes / trials
+    z2 = z * z
+    denom = 1.0 + z2 / trials
+    centre = (p + z2 / (2.0 * trials)) / denom
+    half = z * math.sqrt(p * (1.0 - p) / trials + z2 / (4.0 * trials * trials)) / denom
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+@dataclass(frozen=True)
+class Rate:
+    successes: int
+    trials: int
+
+    @property
+    def value(self) -> float:
+        return self.successes / self.trials if self.trials else math.nan
+
+    @property
+    def interval(self) -> tuple[float, float]:
+        return wilson_interval(self.successes, self.trials)
+
+    def percent(self) -> str:
+        """``"84.2 [78.1, 89.0]"`` (percent with the 95% interval), ``"–"`` without episodes."""
+        if not self.trials:
+            return "–"
+        lo, hi = self.interval
+        return f"{100 * self.value:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]"
+
+
+def column_of(record: Mapping) -> str:
+    if record["kind"] == "deformable":
+        return "Deformable"
+    try:
+        return _BIN_COLUMN[record["size_bin"]]
+    except KeyError:
+        raise ValueError(f"episode record has unknown size bin {record['size_bin']!r}") from None
+
+
+def aggregate(records: Iterable[Mapping]) -> dict[str, dict[str, Rate]]:
+    """``{column: {metric: Rate}}`` over the records; Average pools every episode."""
+    counts = {c: {m: [0, 0] for m in METRICS} for c in COLUMNS}
+    for r in records:
+        for col in (column_of(r), "Average"):
+            for m in METRICS:
+                counts[col][m][0] += bool(r[m])
+                counts[col][m][1] += 1
+    return {c: {m: Rate(*counts[c][m]) for m in METRICS} for c in COLUMNS}
+
+
+def table_markdown(summary: Mapping[str, Mapping[str, Rate]], title: str = "") -> str:
+    """The paper's evaluation table layout: rows s_grasp, s_lift, s_disturb; columns by bin."""
+    lines = [f"**{title}**", ""] if title else []
+    lines.append("| metric (%, 95% CI) | " + " | ".join(COLUMNS) + " |")
+    lines.append("|---|" + "---|" * len(COLUMNS))
+    for m in METRICS:
+        lines.append(f"| {m} | " + " | ".join(summary[c][m].percent() for c in COLUMNS) + " |")
+    lines.append("| episodes | " + " | ".join(str(summary[c]["s_lift"].trials) for c in COLUMNS) + " |")
+    return "\n".join(lines) + "\n"
