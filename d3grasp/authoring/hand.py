@@ -584,6 +584,8 @@ def add_hand(
     builder: Any,
     usd_path: str | Path | None = None,
     xform: Any = None,
+    *,
+    kinematic_palm: bool = False,
     **add_usd_kwargs: Any,
 ) -> HandIndices:
     """Append one DexHand13 to ``builder`` (call inside ``begin_world``/``end_world`` for one hand per world).
@@ -591,12 +593,25 @@ def add_hand(
     ``xform`` (a ``wp.transform``) is the frame the root chain is anchored to: root joint
     coordinates are the palm pose relative to it (see :func:`palm_pose_to_root_q`). Extra keyword
     arguments go to ``ModelBuilder.add_usd``. Returns the index ranges of what was added.
+
+    ``kinematic_palm=True`` skips the driven root chain (its 6 joints and 5 helper bodies) and makes
+    the palm a kinematic root body on a free joint: the caller prescribes the palm pose every
+    substep (a real arm is stiff, so exact root tracking is the better model) and SolverVBD derives
+    its velocity from the pose change. ``root_*`` then index that free joint (7 coordinates:
+    position, quaternion x, y, z, w; 6 DoFs) and ``xform`` should be the identity.
     """
+    import newton
+
     from d3grasp.paths import hand_usd
 
     usd_path = Path(usd_path) if usd_path is not None else hand_usd()
     if not usd_path.is_file():
         raise FileNotFoundError(f"hand USD not found: {usd_path} (run tools/build_hand.py)")
+    if kinematic_palm:
+        chain = [f"{HAND_PRIM}/joints/{n}" for n in ROOT_JOINT_NAMES] + [
+            f"{HAND_PRIM}/{n}" for n in ROOT_LINK_NAMES
+        ]
+        add_usd_kwargs["ignore_paths"] = [*add_usd_kwargs.get("ignore_paths", []), *chain]
     j0, b0, s0 = builder.joint_count, builder.body_count, builder.shape_count
     builder.add_usd(str(usd_path), xform=xform, **add_usd_kwargs)
     j1, b1, s1 = builder.joint_count, builder.body_count, builder.shape_count
@@ -606,9 +621,23 @@ def add_hand(
     def _joints(names: Sequence[str]) -> np.ndarray:
         return np.array([_suffix_index(jl, j0, j1, f"/joints/{n}", "joint") for n in names], dtype=np.int32)
 
-    finger_joints, root_joints = _joints(FINGER_JOINT_NAMES), _joints(ROOT_JOINT_NAMES)
+    finger_joints = _joints(FINGER_JOINT_NAMES)
     q_start, qd_start = builder.joint_q_start, builder.joint_qd_start
-    link_bodies = {n: _suffix_index(bl, b0, b1, f"/{n}", "body") for n in (*ROOT_LINK_NAMES, *LINK_NAMES)}
+    bodies = LINK_NAMES if kinematic_palm else (*ROOT_LINK_NAMES, *LINK_NAMES)
+    link_bodies = {n: _suffix_index(bl, b0, b1, f"/{n}", "body") for n in bodies}
+    if kinematic_palm:
+        palm = link_bodies[PALM_LINK]
+        root_joints = np.array([j for j in range(j0, j1) if builder.joint_child[j] == palm], dtype=np.int32)
+        if len(root_joints) != 1 or builder.joint_parent[int(root_joints[0])] != -1:
+            raise ValueError(f"{usd_path}: expected the palm to be a root body on one free joint")
+        builder.body_flags[palm] = int(newton.BodyFlags.KINEMATIC)
+        j = int(root_joints[0])
+        root_q = np.arange(q_start[j], q_start[j] + 7, dtype=np.int32)
+        root_dof = np.arange(qd_start[j], qd_start[j] + 6, dtype=np.int32)
+    else:
+        root_joints = _joints(ROOT_JOINT_NAMES)
+        root_q = np.array([q_start[j] for j in root_joints], dtype=np.int32)
+        root_dof = np.array([qd_start[j] for j in root_joints], dtype=np.int32)
 
     pad_shapes, pad_bodies = [], []
     for pad in PAD_NAMES:
@@ -625,8 +654,8 @@ def add_hand(
         finger_q=np.array([q_start[j] for j in finger_joints], dtype=np.int32),
         finger_dof=np.array([qd_start[j] for j in finger_joints], dtype=np.int32),
         root_joints=root_joints,
-        root_q=np.array([q_start[j] for j in root_joints], dtype=np.int32),
-        root_dof=np.array([qd_start[j] for j in root_joints], dtype=np.int32),
+        root_q=root_q,
+        root_dof=root_dof,
         palm_body=link_bodies[PALM_LINK],
         link_bodies=link_bodies,
         pad_shapes=np.array(pad_shapes, dtype=np.int32),

@@ -22,8 +22,11 @@ class SimConfig:
     """Newton / SolverVBD settings (DESIGN.md §2: what holds a grasp on this stack)."""
 
     control_hz: float = 60.0
-    substeps: int = 10
-    iterations: int = 5
+    substeps: int = 10  # even; 8 (with collide_every=2) is the fast profile, 4-6 lose most grasps
+    iterations: int = 5  # 4 or 3 drop box_01 or push it off the table (measured)
+    kinematic_palm: bool = True  # palm prescribed each substep instead of the driven 6-DoF root chain
+    collide_every: int = 1  # substeps per collision detection; VBD re-evaluates contacts each iteration
+    rigid_contacts_per_world: int = 256  # rigid contact capacity per world; grasps use < 100
     use_graph: bool = True  # capture one control step as a Warp graph; False = plain loop (debug)
     shape_mu: float = 1.0  # friction of hand and table shapes
     soft_contact_ke: float = 1.0e4

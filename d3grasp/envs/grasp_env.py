@@ -36,6 +36,7 @@ from d3grasp.envs.scene import (
     OBJECT_RIGID,
     OBJECT_SOFT,
     build_scene,
+    palm_world_pose_to_free_q,
     palm_world_pose_to_root_q,
 )
 from d3grasp.kernels import rewards as rk
@@ -78,6 +79,23 @@ def _apply_object_force_kernel(
         p0 = particle_start[w]
         for i in range(n):
             particle_f[p0 + i] = particle_f[p0 + i] + share
+
+
+@wp.kernel
+def _set_palm_pose_kernel(
+    palm_body: wp.array(dtype=wp.int32),
+    pos_start: wp.array(dtype=wp.vec3),
+    pos_end: wp.array(dtype=wp.vec3),
+    quat: wp.array(dtype=wp.quat),
+    alpha: float,
+    body_q: wp.array(dtype=wp.transform),
+):
+    # One thread per world: the kinematic palm at fraction ``alpha`` of the control step, on the
+    # straight line from where it was to the commanded position. SolverVBD takes its velocity from
+    # the change against its previous pose, so contacts see the true palm motion.
+    w = wp.tid()
+    p = pos_start[w] + alpha * (pos_end[w] - pos_start[w])
+    body_q[palm_body[w]] = wp.transform(p, quat[w])
 
 
 def _wp_view(a: wp.array) -> torch.Tensor:
@@ -185,6 +203,7 @@ class GraspEnv:
                 shape_mu=sim.shape_mu,
                 particle_radius=sim.particle_radius,
                 table_height=sim.table_height,
+                kinematic_palm=sim.kinematic_palm,
                 device=self.wp_device,
             )
         model, lay = self.model, self.layout
@@ -214,8 +233,13 @@ class GraspEnv:
             self.state_0 = model.state()
             self.state_1 = model.state()
             self.control = model.control()
+            # The default capacity (~1300 per world here) sizes several per-substep kernels that run
+            # over the whole buffer; grasps use < 100 contacts per world.
             self.pipeline = newton.CollisionPipeline(
-                model, contact_matching="sticky", soft_contact_gap=sim.soft_contact_gap
+                model,
+                contact_matching="sticky",
+                soft_contact_gap=sim.soft_contact_gap,
+                rigid_contact_max=sim.rigid_contacts_per_world * self.num_envs,
             )
             self.contacts = self.pipeline.contacts()
             self.solver = newton.solvers.SolverVBD(
@@ -281,6 +305,11 @@ class GraspEnv:
         self.wp_object_body = wp.array(lay.object_body, dtype=wp.int32, device=dev)
         self.wp_particle_start = wp.array(lay.particle_start, dtype=wp.int32, device=dev)
         self.wp_particle_count = wp.array(lay.particle_count, dtype=wp.int32, device=dev)
+        # Kinematic palm: position at the start and end of the control step, fixed orientation.
+        self.wp_palm_body = wp.array(lay.palm_body, dtype=wp.int32, device=dev)
+        self.palm_pos_start = wp.zeros(W, dtype=wp.vec3, device=dev)
+        self.palm_pos_end = wp.zeros(W, dtype=wp.vec3, device=dev)
+        self.palm_quat = wp.zeros(W, dtype=wp.quat, device=dev)
 
         # Reward inputs, filled from torch views before each reward launch.
         K = NUM_LINKS
@@ -309,6 +338,9 @@ class GraspEnv:
         self.t_joint_qd = _wp_view(self.state_0.joint_qd)
         self.t_target = _wp_view(self.control.joint_target_q)
         self.t_object_force = _wp_view(self.object_force)
+        self.t_palm_pos_start = _wp_view(self.palm_pos_start)
+        self.t_palm_pos_end = _wp_view(self.palm_pos_end)
+        self.t_palm_quat = _wp_view(self.palm_quat)
         self.t_pad_force = _wp_view(self.pad_force)
         self.t_pad_contact = _wp_view(self.pad_contact)
         self.t_pad_force_true = _wp_view(self.pad_force_true)
@@ -357,7 +389,7 @@ class GraspEnv:
         self.grasp_palm_quat = torch.zeros(W, 4, dtype=f32, device=tdev)
         self.approach_dir = torch.zeros(W, 3, dtype=f32, device=tdev)
         self.root_cmd_pos = torch.zeros(W, 3, dtype=f32, device=tdev)
-        self.root_q_cmd = torch.zeros(W, 6, dtype=f32, device=tdev)
+        self.root_q_cmd = torch.zeros(W, lay.root_q.shape[1], dtype=f32, device=tdev)
         # p_anchor = R_a^T p  <=>  row vector p @ R_a
         self.anchor_rot = torch.as_tensor(quat_xyzw_to_matrix(HAND_ANCHOR_QUAT), dtype=f32, device=tdev)
         self.object_start = torch.zeros(W, 3, dtype=f32, device=tdev)
@@ -391,8 +423,22 @@ class GraspEnv:
 
     def _physics(self) -> None:
         sim = self.cfg.sim
-        for _ in range(sim.substeps):
+        for i in range(sim.substeps):
             self.state_0.clear_forces()
+            if self.layout.kinematic_palm:
+                wp.launch(
+                    _set_palm_pose_kernel,
+                    dim=self.num_envs,
+                    inputs=[
+                        self.wp_palm_body,
+                        self.palm_pos_start,
+                        self.palm_pos_end,
+                        self.palm_quat,
+                        float(i + 1) / float(sim.substeps),
+                    ],
+                    outputs=[self.state_0.body_q],
+                    device=self.wp_device,
+                )
             wp.launch(
                 _apply_object_force_kernel,
                 dim=self.num_envs,
@@ -405,7 +451,10 @@ class GraspEnv:
                 outputs=[self.state_0.body_f, self.state_0.particle_f],
                 device=self.wp_device,
             )
-            self.pipeline.collide(self.state_0, self.contacts)
+            # Contacts are stored in body frames and re-evaluated every solver iteration, so detecting
+            # every other substep loses little (the gap covers the motion in between).
+            if i % max(1, sim.collide_every) == 0:
+                self.pipeline.collide(self.state_0, self.contacts)
             self.solver.step(
                 self.state_0,
                 self.state_1,
@@ -505,9 +554,14 @@ class GraspEnv:
             grasp = self._sample_grasp(w, ex)
             gp = grasp_pose(grasp, obj_pos, yaw, ex, table)
             pre = gp.palm_pos - cfg.phases.pregrasp_clearance * gp.approach_dir
-            root = palm_world_pose_to_root_q(pre, gp.palm_quat)
+            root = (
+                palm_world_pose_to_free_q(pre, gp.palm_quat)
+                if lay.kinematic_palm
+                else palm_world_pose_to_root_q(pre, gp.palm_quat)
+            )
             jq[lay.root_q[w]] = root
-            tgt[lay.root_q[w]] = root
+            if not lay.kinematic_palm:
+                tgt[lay.root_q[w]] = root
             self.root_q_cmd[w] = torch.as_tensor(root, dtype=torch.float32)
             jq[lay.finger_q[w]] = self.open_pose.cpu().numpy()
             tgt[lay.finger_q[w]] = self.open_pose.cpu().numpy()
@@ -516,6 +570,9 @@ class GraspEnv:
             self.grasp_palm_quat[w] = torch.as_tensor(gp.palm_quat, dtype=torch.float32)
             self.approach_dir[w] = torch.as_tensor(gp.approach_dir, dtype=torch.float32)
             self.root_cmd_pos[w] = torch.as_tensor(pre, dtype=torch.float32)
+            self.t_palm_pos_start[w] = torch.as_tensor(pre, dtype=torch.float32)
+            self.t_palm_pos_end[w] = torch.as_tensor(pre, dtype=torch.float32)
+            self.t_palm_quat[w] = torch.as_tensor(gp.palm_quat, dtype=torch.float32)
             self.object_start[w] = torch.as_tensor(obj_pos, dtype=torch.float32)
             if lay.object_kind[w] == OBJECT_RIGID:
                 q0 = lay.object_joint_q[w]
@@ -556,6 +613,8 @@ class GraspEnv:
         self.control.joint_target_q.assign(tgt)
         self.model.body_mass.assign(body_mass)
         self.model.body_inv_mass.assign(inv_mass)
+        # SolverVBD keeps its own inverse masses (zero for kinematic bodies): refresh them.
+        self.solver.notify_model_changed(newton.ModelFlags.BODY_INERTIAL_PROPERTIES)
         self.model.shape_material_mu.assign(shape_mu)
         self.model.joint_target_ke.assign(ke)
         self.model.joint_target_kd.assign(kd)
@@ -644,6 +703,12 @@ class GraspEnv:
         return pos
 
     def _write_root_targets(self, pos: torch.Tensor) -> None:
+        if self.layout.kinematic_palm:
+            # The captured substeps move the palm from its current position to ``pos``.
+            self.t_palm_pos_start[:] = _wp_view(self.state_0.body_q)[self.i_palm, :3]
+            self.t_palm_pos_end[:] = pos
+            self.t_palm_quat[:] = self.grasp_palm_quat
+            return
         # The orientation is fixed per episode (root angles set at reset); the prismatic part of the
         # root chain is the palm position expressed in the anchor frame.
         self.root_q_cmd[:, :3] = pos @ self.anchor_rot

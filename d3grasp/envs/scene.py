@@ -33,6 +33,11 @@ OBJECT_RIGID = 0
 OBJECT_SOFT = 1
 
 
+def palm_world_pose_to_free_q(pos: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """Free-joint coordinates (7,) of a kinematic palm at a world pose: position, quaternion x, y, z, w."""
+    return np.concatenate([np.asarray(pos, dtype=np.float64), np.asarray(quat_xyzw, dtype=np.float64)])
+
+
 def palm_world_pose_to_root_q(pos: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
     """Root joint coordinates (6,) that put the palm at a world pose (the anchor sits at the origin)."""
     r_world = hand_def.quat_xyzw_to_matrix(quat_xyzw)
@@ -57,8 +62,9 @@ class SceneLayout:
     tet_count: np.ndarray  # (W,)
     finger_q: np.ndarray  # (W, 16) joint_q indices of the finger joints
     finger_dof: np.ndarray  # (W, 16)
-    root_q: np.ndarray  # (W, 6)
+    root_q: np.ndarray  # (W, 6) root chain angles, or (W, 7) the kinematic palm's free joint
     root_dof: np.ndarray  # (W, 6)
+    kinematic_palm: bool  # palm prescribed each substep (no root chain)
     palm_body: np.ndarray  # (W,)
     link_bodies: np.ndarray  # (W, 17) palm + finger links, hand_def.LINK_NAMES order
     hand_shapes: list[np.ndarray]  # per world, every collision shape of the hand
@@ -82,11 +88,13 @@ def build_scene(
     particle_radius: float = 0.003,
     table_height: float = 0.0,
     contact_gap: float = 0.005,
+    kinematic_palm: bool = False,
     device: str | None = None,
 ) -> tuple[newton.Model, SceneLayout]:
     """Build and finalize one model with a world per (asset entry, USD path).
 
     Objects are loaded at the origin in their rest frame; the environment places them on reset.
+    ``kinematic_palm`` loads the hand without its root chain (see :func:`hand_def.add_hand`).
     """
     builder = newton.ModelBuilder()
     builder.default_shape_cfg.mu = shape_mu
@@ -95,7 +103,11 @@ def build_scene(
     builder.default_shape_cfg.gap = contact_gap
     builder.default_particle_radius = particle_radius
     builder.add_ground_plane(height=table_height)
-    anchor = wp.transform(wp.vec3(0.0, 0.0, 0.0), wp.quat(*HAND_ANCHOR_QUAT))
+    anchor = (
+        wp.transform_identity()
+        if kinematic_palm
+        else wp.transform(wp.vec3(0.0, 0.0, 0.0), wp.quat(*HAND_ANCHOR_QUAT))
+    )
 
     kinds, obj_body, obj_jq, obj_jqd = [], [], [], []
     p_start, p_count, t_start, t_count = [], [], [], []
@@ -103,7 +115,7 @@ def build_scene(
     hand_shapes, object_shapes = [], []
     for entry, usd_path in entries:
         builder.begin_world(label=f"world_{len(kinds)}")
-        hand = hand_def.add_hand(builder, xform=anchor)
+        hand = hand_def.add_hand(builder, xform=anchor, kinematic_palm=kinematic_palm)
         finger_q.append(hand.finger_q)
         finger_dof.append(hand.finger_dof)
         root_q.append(hand.root_q)
@@ -168,6 +180,7 @@ def build_scene(
         finger_dof=np.array(finger_dof, dtype=np.int32),
         root_q=np.array(root_q, dtype=np.int32),
         root_dof=np.array(root_dof, dtype=np.int32),
+        kinematic_palm=kinematic_palm,
         palm_body=np.array(palm, dtype=np.int32),
         link_bodies=np.array(links, dtype=np.int32),
         hand_shapes=hand_shapes,
