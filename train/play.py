@@ -60,6 +60,29 @@ def format_episode(n: int, ep: dict[str, Any]) -> str:
     )
 
 
+def load_runner(env: Any, task: str, checkpoint: Any, device: str, data: dict | None = None) -> D3GraspRunner:
+    """A runner holding the checkpoint's actor for ``env``'s worlds, built as it was trained.
+
+    The networks come from the checkpoint's saved model sections, not today's defaults, and
+    ``D3GraspRunner.load`` refuses (``CheckpointError``) a checkpoint whose observation sizes
+    differ from the environment's. Used by ``d3grasp-play`` and ``d3grasp-eval``.
+    """
+    data = read_checkpoint(checkpoint) if data is None else data
+    cfg = make_train_cfg(task)
+    cfg["algorithm"]["num_mini_batches"] = fit_mini_batches(
+        cfg["algorithm"]["num_mini_batches"], env.num_envs
+    )
+    infos = data.get("infos") or {}
+    for section in ("actor", "critic"):
+        if isinstance(infos.get(section), dict):
+            cfg[section] = infos[section]
+    if isinstance(infos.get("obs_groups"), dict) and "actor" in infos["obs_groups"]:
+        cfg["obs_groups"]["actor"] = list(infos["obs_groups"]["actor"])
+    runner = D3GraspRunner(env, cfg, log_dir=None, device=device, task_name=task)
+    runner.load(str(checkpoint), load_cfg={"actor": True})
+    return runner
+
+
 def play(
     task: str,
     checkpoint: str | os.PathLike[str],
@@ -88,19 +111,7 @@ def play(
     env = make(task, num_envs=num_envs, device=device, seed=seed)
     result = PlayResult()
     try:
-        cfg = make_train_cfg(task)
-        cfg["algorithm"]["num_mini_batches"] = fit_mini_batches(
-            cfg["algorithm"]["num_mini_batches"], env.num_envs
-        )
-        # Build the networks as the checkpoint was trained (its saved model sections), not today's defaults.
-        infos = data.get("infos") or {}
-        for section in ("actor", "critic"):
-            if isinstance(infos.get(section), dict):
-                cfg[section] = infos[section]
-        if isinstance(infos.get("obs_groups"), dict) and "actor" in infos["obs_groups"]:
-            cfg["obs_groups"]["actor"] = list(infos["obs_groups"]["actor"])
-        runner = D3GraspRunner(env, cfg, log_dir=None, device=device, task_name=task)
-        runner.load(str(ckpt), load_cfg={"actor": True})
+        runner = load_runner(env, task, ckpt, device, data=data)
         policy = runner.get_inference_policy(device)
         policy.reset()
 

@@ -1,0 +1,171 @@
+"""``d3grasp-eval`` end to end on the real environment, kept small: two rigid test objects, one
+episode each, the disturbance pushes shortened to 0.1 s per direction through ``--set``.
+
+References are independent of the code under test: success counts recounted from the episode
+records, Wilson intervals from SciPy's binomial test, the eval-mode episode length from the phase
+durations by hand (six pushes), the forced grasp type against the rule's own choice.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import pytest
+from scipy.stats import binomtest
+
+from d3grasp.authoring.manifest import read_manifest, resolve_asset_path, write_manifest
+from d3grasp.envs import DEFAULT_TASK
+from d3grasp.envs.config import PhaseConfig
+from d3grasp.eval.cli import main, parse_override
+from d3grasp.eval.metrics import COLUMNS, METRICS
+from d3grasp.paths import default_manifest
+
+OBJECTS = ("bottle_04", "box_04")  # rigid, medium, test split; the rule picks top and pinch for them
+PUSH_S = 0.1
+QUICK = ["--set", f"phases.disturb_per_direction={PUSH_S}", "--num_envs", "2", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def manifest(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A two-object manifest pointing at the shipped USD files (absolute paths)."""
+    lib = default_manifest()
+    by_id = {e.id: e for e in read_manifest(lib)}
+    path = tmp_path_factory.mktemp("lib") / "manifest.json"
+    write_manifest(path, [replace(by_id[i], path=str(resolve_asset_path(lib, by_id[i]))) for i in OBJECTS])
+    return path
+
+
+def _save_untrained_checkpoint(task: str, path: Path, manifest: Path) -> Path:
+    """A checkpoint as d3grasp-train writes it (weights + infos with observation sizes), untrained."""
+    from d3grasp.train.configs import fit_mini_batches, make_train_cfg
+    from d3grasp.train.runner import D3GraspRunner
+
+    from d3grasp.envs import make_env
+
+    env = make_env(task, num_envs=1, objects={"manifest": str(manifest), "ids": OBJECTS[:1]})
+    cfg = make_train_cfg(task)
+    cfg["algorithm"]["num_mini_batches"] = fit_mini_batches(cfg["algorithm"]["num_mini_batches"], 1)
+    D3GraspRunner(env, cfg, log_dir=None, device="cpu", task_name=task).save(str(path))
+    env.close()
+    return path
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory, manifest: Path) -> Path:
+    return _save_untrained_checkpoint(DEFAULT_TASK, tmp_path_factory.mktemp("ckpt") / "model_0.pt", manifest)
+
+
+@pytest.fixture(scope="module")
+def compare_run(tmp_path_factory: pytest.TempPathFactory, manifest: Path, checkpoint: Path) -> Path:
+    out = tmp_path_factory.mktemp("compare")
+    argv = ["--checkpoint", str(checkpoint), "--objects", str(manifest), "--compare", "baseline"]
+    assert main([*argv, "--grasp-types", "top", "--seed", "3", "--out", str(out), *QUICK]) == 0
+    return out
+
+
+def _read(out: Path) -> dict[str, Any]:
+    return json.loads((out / "results.json").read_text())
+
+
+def test_policy_and_baseline_files(compare_run: Path) -> None:
+    doc = _read(compare_run)
+    assert doc["objects"] == list(OBJECTS)
+    s = doc["settings"]
+    assert (s["task"], s["grasp_types"], s["seed"], s["episodes_per_object"]) == (DEFAULT_TASK, "top", 3, 1)
+    assert s["split"] == "all"  # an own manifest defaults to all of its objects
+    assert s["env_overrides"] == {"phases__disturb_per_direction": PUSH_S}
+    assert set(doc["runs"]) == {"policy", "baseline"}
+    ph = PhaseConfig()
+    steps = round(60 * (ph.approach + ph.grasp + ph.lift + ph.hold)) + 6 * round(60 * PUSH_S)  # six pushes
+    keys = [(ep["object"], ep["repeat"], ep["seed"]) for ep in doc["runs"]["policy"]["episodes"]]
+    assert keys == [(o, 0, 3) for o in OBJECTS]
+    for label, run in doc["runs"].items():
+        eps = run["episodes"]
+        assert [(ep["object"], ep["repeat"], ep["seed"]) for ep in eps] == keys, label  # same episodes
+        for ep in eps:
+            assert ep["grasp_type"] == "top"  # forced: the rule alone would give box_04 a pinch
+            assert ep["length"] == steps and ep["kind"] == "rigid" and ep["size_bin"] == "medium"
+            assert isinstance(ep["s_lift"], bool) and (ep["s_disturb"] <= ep["s_lift"] <= ep["s_grasp"])
+
+    rows = list(csv.DictReader((compare_run / "summary.csv").open()))
+    assert list(rows[0]) == ["run", "column", "metric", "successes", "trials", "rate", "ci_low", "ci_high"]
+    assert len(rows) == 2 * len(COLUMNS) * len(METRICS)
+    for row in rows:
+        eps = doc["runs"][row["run"]]["episodes"]
+        if row["column"] != "Average":
+            eps = [ep for ep in eps if ep["kind"] == "rigid" and ep["size_bin"] == row["column"].lower()]
+        k, n = sum(ep[row["metric"]] for ep in eps), len(eps)
+        assert (int(row["successes"]), int(row["trials"])) == (k, n), row
+        if n == 0:
+            assert row["rate"] == row["ci_low"] == row["ci_high"] == ""
+            continue
+        ci = binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
+        assert float(row["rate"]) == pytest.approx(k / n, abs=1e-6)
+        assert float(row["ci_low"]) == pytest.approx(ci.low, abs=1e-5)
+        assert float(row["ci_high"]) == pytest.approx(ci.high, abs=1e-5)
+
+    table = (compare_run / "table.md").read_text()
+    policy_at, baseline_at = table.index("**policy model_0.pt"), table.index("**rule-based baseline")
+    assert policy_at < baseline_at and table.count("| s_disturb |") == 2 and table.count("| episodes |") == 2
+    assert "| episodes | 0 | 2 | 0 | 0 | 2 |" in table
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        assert not (compare_run / "plot.png").exists()
+    else:
+        assert (compare_run / "plot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_same_seed_same_results(tmp_path: Path, manifest: Path, compare_run: Path) -> None:
+    argv = ["--checkpoint", "baseline", "--objects", str(manifest), "--grasp-types", "top", "--seed", "3"]
+    for name in ("a", "b"):
+        assert main([*argv, "--out", str(tmp_path / name), *QUICK]) == 0
+    a, b = (tmp_path / "a" / "results.json").read_text(), (tmp_path / "b" / "results.json").read_text()
+    assert a == b
+    # The baseline of the comparison run saw the same objects, seeds and grasp types: same episodes.
+    assert json.loads(a)["runs"]["baseline"]["episodes"] == _read(compare_run)["runs"]["baseline"]["episodes"]
+
+
+def _error_line(capsys: pytest.CaptureFixture[str]) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("d3grasp-eval: error: ")
+    return err[0]
+
+
+def test_bad_inputs(tmp_path: Path, manifest: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    base = ["--out", str(out), *QUICK]
+    assert main(["--checkpoint", "baseline", "--objects", str(tmp_path / "nope.json"), *base]) == 2
+    assert "nope.json" in _error_line(capsys)
+    assert main(["--checkpoint", str(tmp_path / "model_9.pt"), "--objects", str(manifest), *base]) == 2
+    assert "checkpoint not found" in _error_line(capsys)
+    assert main(["--checkpoint", "baseline", "--compare", "baseline", *base]) == 2
+    _error_line(capsys)
+    assert main(["--checkpoint", "baseline", "--task", "D3Grasp-Nope-v0", *base]) == 2
+    assert "D3Grasp-Nope-v0" in _error_line(capsys)
+    assert main(["--checkpoint", "baseline", "--set", "seed=4", *base]) == 2
+    _error_line(capsys)
+    assert not out.exists()  # nothing written on bad input
+
+
+def test_checkpoint_of_another_task(
+    tmp_path: Path, manifest: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    other = "D3Grasp-DexHand13-Base-v0"  # proprioception only: a smaller policy observation
+    ckpt = _save_untrained_checkpoint(other, tmp_path / "model_0.pt", manifest)
+    argv = ["--checkpoint", str(ckpt), "--objects", str(manifest), "--out", str(tmp_path / "out"), *QUICK]
+    assert main(argv) == 2
+    line = _error_line(capsys)
+    assert other in line and "does not fit task" in line and DEFAULT_TASK in line
+
+
+def test_parse_override() -> None:
+    assert parse_override("phases.disturb_per_direction=0.1") == ("phases__disturb_per_direction", 0.1)
+    assert parse_override("sim.use_graph=false") == ("sim__use_graph", False)
+    assert parse_override("randomization.friction=[0.5, 1.0]") == ("randomization__friction", (0.5, 1.0))
+    assert parse_override("grasp_mode=sample") == ("grasp_mode", "sample")
