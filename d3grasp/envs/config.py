@@ -103,5 +103,12 @@ class GraspEnvConfig:
     objects: ObjectSetConfig = field(default_factory=ObjectSetConfig)
     obs: ObservationConfig = field(default_factory=ObservationConfig)
     randomization: RandomizationConfig = field(default_factory=RandomizationConfig)
-    rewards: RewardConfig = field(default_factory=RewardConfig)
+    # Contact and stability weights scaled so a step's terms are O(0.1-1) in this simulator: random
+    # finger motion presses pads against the table at tens of newtons and flicks light objects at
+    # ~1 m/s, which with the kernel defaults gave per-step rewards of -20 to -40 and returns of -2000.
+    rewards: RewardConfig = field(
+        default_factory=lambda: RewardConfig(
+            contact_gain=0.02, contact_penalty=0.05, stability_lin=0.2, stability_ang=0.01
+        )
+    )
     tactile: TactileConfig = field(default_factory=TactileConfig)
