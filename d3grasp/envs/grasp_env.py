@@ -868,6 +868,8 @@ class GraspEnv:
         time_out = t >= self.max_episode_length
         done = pushed_off | dropped | blowup | nonfinite | time_out
         for w in torch.nonzero(done & ~time_out).flatten().tolist():
+            if self.failure[w] and not nonfinite[w]:
+                continue  # evaluation runs on after a failure: keep the first cause
             self.failure[w] = (
                 "non-finite state"
                 if nonfinite[w]
