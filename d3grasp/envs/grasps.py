@@ -165,10 +165,8 @@ def grasp_pose(
         offset = np.array([g.near_face_x + 0.5 * along, lateral, g.top_z + 0.5 * depth])
     else:
         r = _rz(yaw) @ _R_DOWN
-        if grasp == "pinch":
-            offset = np.array([g.near_face_x + 0.5 * along, g.lateral_y, g.top_z + 0.5 * ex[2]])
-        else:
-            offset = np.array([g.near_face_x + 0.5 * along, g.lateral_y, g.top_z + 0.5 * ex[2]])
+        # Palm down (top and pinch): the type's own placement constants differ, the rule does not.
+        offset = np.array([g.near_face_x + 0.5 * along, g.lateral_y, g.top_z + 0.5 * ex[2]])
     palm_pos = np.asarray(obj_pos, dtype=np.float64) - r @ offset
     return GraspPose(
         grasp=grasp,

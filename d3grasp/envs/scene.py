@@ -13,7 +13,6 @@ type's orientation stays well inside ±π/2.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,11 +73,6 @@ class SceneLayout:
     rest_particle_q: np.ndarray  # (P, 3) particle positions as loaded (objects centred at the origin)
     finger_lower: np.ndarray  # (16,) joint limits (same hand in every world)
     finger_upper: np.ndarray  # (16,)
-
-
-def _rigid_origin_offset(entry: AssetEntry) -> float:
-    """Height of the object's frame origin above its lowest point in the rest orientation."""
-    return 0.5 * float(entry.extents[2])
 
 
 def build_scene(
@@ -192,13 +186,3 @@ def build_scene(
         finger_upper=upper[f_dof0].astype(np.float64),
     )
     return model, layout
-
-
-def object_rest_height(entry: AssetEntry) -> float:
-    """z of the object's frame origin when it rests on the table in its authored orientation."""
-    return _rigid_origin_offset(entry)
-
-
-def yaw_quat(yaw: float) -> np.ndarray:
-    """Quaternion (x, y, z, w) of a rotation by ``yaw`` about world z."""
-    return np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
