@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
+from collections.abc import Callable
 
 from d3grasp.envs.registry import DEFAULT_TASK
 
@@ -98,3 +100,28 @@ def resolve_torch_threads(requested: int | None) -> int:
     (OpenMP threads spinning against the busy core) against 0.5 s with 1 thread per rank.
     """
     return 1 if requested is None else requested
+
+
+def run_command(prog: str, body: Callable[[], int | None], *, one_line: bool = False) -> int:
+    """Run a command's body with the commands' shared error contract.
+
+    A bad task, a checkpoint that does not fit, bad input or a missing file print
+    ``<prog>: error: <reason>`` and exit 2 (``one_line`` folds a multi-line reason onto one line);
+    Ctrl-C prints ``<prog>: aborted`` and exits 130; ``D3GRASP_DEBUG=1`` re-raises for a traceback.
+    """
+    from d3grasp.train.runner import CheckpointError
+
+    from d3grasp.envs.registry import UnknownTaskError
+
+    try:
+        code = body()
+    except (UnknownTaskError, CheckpointError, ValueError, FileNotFoundError) as exc:
+        if os.getenv("D3GRASP_DEBUG"):
+            raise
+        reason = " ".join(str(exc).split()) if one_line else str(exc)
+        print(f"{prog}: error: {reason}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{prog}: aborted", file=sys.stderr)
+        return 130
+    return 0 if code is None else code

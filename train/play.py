@@ -23,13 +23,13 @@ from typing import Any
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 import torch  # noqa: E402
-from d3grasp.train.cli_args import make_play_parser, resolve_torch_threads  # noqa: E402
+from d3grasp.train.cli_args import make_play_parser, resolve_torch_threads, run_command  # noqa: E402
 from d3grasp.train.configs import fit_mini_batches, make_train_cfg  # noqa: E402
 from d3grasp.train.export import ExportPaths, LatencyReport, export_policy, measure_latency  # noqa: E402
-from d3grasp.train.runner import CheckpointError, D3GraspRunner, EpisodeStats, read_checkpoint  # noqa: E402
+from d3grasp.train.runner import D3GraspRunner, EpisodeStats, read_checkpoint  # noqa: E402
 from d3grasp.train.train import DistInfo, load_env_factory, resolve_device, seed_everything  # noqa: E402
 
-from d3grasp.envs.registry import UnknownTaskError, get_task  # noqa: E402
+from d3grasp.envs.registry import get_task  # noqa: E402
 
 __all__ = ["PlayResult", "format_episode", "main", "play"]
 
@@ -182,7 +182,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         return 2
     torch.set_num_threads(resolve_torch_threads(args.torch_threads))
-    try:
+
+    def body() -> None:
         play(
             args.task,
             args.checkpoint,
@@ -195,15 +196,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             env_factory=args.env_factory,
             max_steps=args.max_steps,
         )
-    except (UnknownTaskError, CheckpointError, ValueError, FileNotFoundError) as exc:
-        if os.getenv("D3GRASP_DEBUG"):
-            raise
-        print(f"d3grasp-play: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("d3grasp-play: aborted", file=sys.stderr)
-        return 130
-    return 0
+
+    return run_command("d3grasp-play", body)
 
 
 if __name__ == "__main__":

@@ -31,11 +31,11 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from d3grasp.train.cli_args import make_train_parser, resolve_torch_threads  # noqa: E402
+from d3grasp.train.cli_args import make_train_parser, resolve_torch_threads, run_command  # noqa: E402
 from d3grasp.train.configs import fit_mini_batches, make_train_cfg  # noqa: E402
 from d3grasp.train.runner import CheckpointError, D3GraspRunner, latest_checkpoint  # noqa: E402
 
-from d3grasp.envs.registry import UnknownTaskError, get_task  # noqa: E402
+from d3grasp.envs.registry import get_task  # noqa: E402
 
 __all__ = ["DistInfo", "load_env_factory", "main", "resolve_device", "resume_checkpoint", "run_training"]
 
@@ -210,17 +210,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = make_train_parser()
     args = parser.parse_args(argv)
-    try:
+
+    def body() -> None:
         run_training(args, ["d3grasp-train", *argv])
-    except (UnknownTaskError, CheckpointError, ValueError, FileNotFoundError) as exc:
-        if os.getenv("D3GRASP_DEBUG"):
-            raise
-        print(f"d3grasp-train: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("d3grasp-train: aborted", file=sys.stderr)
-        return 130
-    return 0
+
+    return run_command("d3grasp-train", body)
 
 
 if __name__ == "__main__":

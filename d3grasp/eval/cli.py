@@ -94,10 +94,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = make_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     import torch
 
-    from d3grasp.envs.registry import UnknownTaskError
     from d3grasp.eval.evaluate import evaluate, write_outputs
-    from d3grasp.train.cli_args import resolve_torch_threads
-    from d3grasp.train.runner import CheckpointError
+    from d3grasp.train.cli_args import resolve_torch_threads, run_command
 
     torch.set_num_threads(resolve_torch_threads(args.torch_threads))
     import warp as wp
@@ -116,20 +114,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         device=args.device,
         env_overrides=dict(args.overrides),
     )
-    try:
+
+    def body() -> None:
         result = evaluate(settings, progress=not args.no_progress)
         paths = write_outputs(result, args.out)
-    except (UnknownTaskError, CheckpointError, ValueError, FileNotFoundError) as exc:
-        if os.getenv("D3GRASP_DEBUG"):
-            raise
-        print(f"d3grasp-eval: error: {' '.join(str(exc).split())}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("d3grasp-eval: aborted", file=sys.stderr)
-        return 130
-    print(paths["table"].read_text())
-    print(f"[d3grasp-eval] wrote {', '.join(str(p) for p in paths.values())} in {result.wall_s:.1f} s")
-    return 0
+        print(paths["table"].read_text())
+        print(f"[d3grasp-eval] wrote {', '.join(str(p) for p in paths.values())} in {result.wall_s:.1f} s")
+
+    return run_command("d3grasp-eval", body, one_line=True)
 
 
 if __name__ == "__main__":
