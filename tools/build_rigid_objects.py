@@ -40,7 +40,7 @@ if str(REPO) not in sys.path:  # run as a script from a checkout without install
     sys.path.insert(0, str(REPO))
 
 from d3grasp.authoring.importer import RIGID_DIR, author_rigid  # noqa: E402
-from d3grasp.authoring.manifest import SIZE_BINS, AssetEntry, merge_into_manifest  # noqa: E402
+from d3grasp.authoring.manifest import SIZE_BINS, AssetEntry, install_built_assets  # noqa: E402
 
 INSTANCES_PER_FAMILY = 10
 TEST_EVERY = 5  # instance i is held out when i % TEST_EVERY == TEST_EVERY - 1
@@ -362,14 +362,7 @@ def build(out_root: Path, *, progress: bool = True) -> list[AssetEntry]:
 
             it = tqdm(specs, desc="rigid objects", unit="obj")
         entries = [build_one(s, tmp) for s in it]
-        dst = out_root / RIGID_DIR
-        if dst.exists():
-            for old in dst.glob("*.usd*"):
-                old.unlink()
-        dst.mkdir(parents=True, exist_ok=True)
-        for e in entries:
-            shutil.move(str(tmp / e.path), str(out_root / e.path))
-        merge_into_manifest(out_root / "manifest.json", entries, kind="rigid")
+        install_built_assets(tmp, out_root, RIGID_DIR, entries, kind="rigid")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return entries

@@ -62,7 +62,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # run as a script from a checkout without installing
     sys.path.insert(0, str(REPO))
 
-from d3grasp.authoring.manifest import SIZE_BINS, AssetEntry, merge_into_manifest, size_bin_of  # noqa: E402
+from d3grasp.authoring.manifest import SIZE_BINS, AssetEntry, install_built_assets, size_bin_of  # noqa: E402
 from d3grasp.authoring.tetmesh import rest_volume_and_mass, surface_faces, tetrahedralize  # noqa: E402
 from d3grasp.authoring.usd_soft import read_soft_usd, write_soft_usd  # noqa: E402
 
@@ -359,13 +359,7 @@ def build(out_root: Path, regenerate_tets: bool = False, *, progress: bool = Tru
                     f"E {e.material['youngs_modulus']:.3g} Pa ({time.perf_counter() - t0:.1f} s)",
                     flush=True,
                 )
-        dst = out_root / SOFT_DIR
-        dst.mkdir(parents=True, exist_ok=True)
-        for old in dst.glob("*.usd*"):
-            old.unlink()
-        for e in entries:
-            shutil.move(str(tmp / e.path), str(out_root / e.path))
-        merge_into_manifest(out_root / "manifest.json", entries, kind="deformable")
+        install_built_assets(tmp, out_root, SOFT_DIR, entries, kind="deformable")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return entries

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -140,3 +141,21 @@ def merge_into_manifest(path: str | Path, entries: list[AssetEntry], kind: Asset
     path = Path(path)
     kept = [e for e in read_manifest(path) if e.kind != kind] if path.exists() else []
     write_manifest(path, kept + list(entries))
+
+
+def install_built_assets(
+    staging: str | Path, out_root: str | Path, subdir: str, entries: list[AssetEntry], kind: AssetKind
+) -> None:
+    """Move a builder's finished USD files from ``staging`` into ``out_root/subdir`` and merge their entries.
+
+    The folder's previous USD files are removed first, so a rebuild leaves no stale assets; the
+    builders write everything to ``staging`` and call this only after every asset succeeded.
+    """
+    staging, out_root = Path(staging), Path(out_root)
+    dst = out_root / subdir
+    dst.mkdir(parents=True, exist_ok=True)
+    for old in dst.glob("*.usd*"):
+        old.unlink()
+    for e in entries:
+        shutil.move(str(staging / e.path), str(out_root / e.path))
+    merge_into_manifest(out_root / "manifest.json", entries, kind=kind)
