@@ -142,6 +142,7 @@ def _kernel_fixtures(num_worlds: int, rng: np.random.Generator) -> dict[str, Cal
         eps_bar=rng.uniform(0, 0.2, w),
         node_count=np.full(w, float(n1)),
         is_deformable=np.ones(w, dtype=np.int32),
+        object_rise=rng.uniform(0.0, 0.1, w),
     )
     rbuf = rewards.RewardBuffers.allocate(rewards.RewardConfig(), w, j, tactile.NUM_PADS)
 

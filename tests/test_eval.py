@@ -21,7 +21,7 @@ from d3grasp.authoring.manifest import read_manifest, resolve_asset_path, write_
 from d3grasp.envs import DEFAULT_TASK
 from d3grasp.envs.config import PhaseConfig
 from d3grasp.eval.cli import main, parse_override
-from d3grasp.eval.metrics import COLUMNS, METRICS
+from d3grasp.eval.metrics import GROUPS, METRICS
 from d3grasp.paths import default_manifest
 
 OBJECTS = ("bottle_04", "box_04")  # rigid, medium, test split; the rule picks top and pinch for them
@@ -93,10 +93,14 @@ def test_policy_and_baseline_files(compare_run: Path) -> None:
 
     rows = list(csv.DictReader((compare_run / "summary.csv").open()))
     assert list(rows[0]) == ["run", "column", "metric", "successes", "trials", "rate", "ci_low", "ci_high"]
-    assert len(rows) == 2 * len(COLUMNS) * len(METRICS)
+    assert len(rows) == 2 * len(GROUPS) * len(METRICS)
     for row in rows:
         eps = doc["runs"][row["run"]]["episodes"]
-        if row["column"] != "Average":
+        if row["column"] == "Diverse":  # every rigid object
+            eps = [ep for ep in eps if ep["kind"] == "rigid"]
+        elif row["column"] == "Deformable":
+            eps = [ep for ep in eps if ep["kind"] == "deformable"]
+        elif row["column"] != "Average":
             eps = [ep for ep in eps if ep["kind"] == "rigid" and ep["size_bin"] == row["column"].lower()]
         k, n = sum(ep[row["metric"]] for ep in eps), len(eps)
         assert (int(row["successes"]), int(row["trials"])) == (k, n), row
@@ -112,12 +116,19 @@ def test_policy_and_baseline_files(compare_run: Path) -> None:
     policy_at, baseline_at = table.index("**policy model_0.pt"), table.index("**rule-based baseline")
     assert policy_at < baseline_at and table.count("| s_disturb |") == 2 and table.count("| episodes |") == 2
     assert "| episodes | 0 | 2 | 0 | 0 | 2 |" in table
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        assert not (compare_run / "plot.png").exists()
-    else:
-        assert (compare_run / "plot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # The comparison table comes first: one row per controller, diverse (rigid) and deformable columns.
+    assert table.index("**Comparison:") < policy_at
+    for label in ("policy", "baseline"):
+        eps = doc["runs"][label]["episodes"]
+        cells = [_percent(sum(ep[m] for ep in eps), len(eps)) for m in ("s_lift", "s_disturb")]
+        assert f"| {label} | {cells[0]} | {cells[1]} | – | – | 2 / 0 |" in table
+    assert (compare_run / "plot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _percent(k: int, n: int) -> str:
+    """A table cell from SciPy's Wilson interval: "50.0 [9.5, 90.5]"."""
+    ci = binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
+    return f"{100 * k / n:.1f} [{100 * ci.low:.1f}, {100 * ci.high:.1f}]"
 
 
 def test_same_seed_same_results(tmp_path: Path, manifest: Path, compare_run: Path) -> None:
@@ -162,6 +173,88 @@ def test_checkpoint_of_another_task(
     assert main(argv) == 2
     line = _error_line(capsys)
     assert other in line and "does not fit task" in line and DEFAULT_TASK in line
+
+
+BASE, TACTILE = "D3Grasp-DexHand13-Base-v0", "D3Grasp-DexHand13-BaseTactile-v0"
+
+
+def _drop_recorded_task(path: Path) -> None:
+    """Make a checkpoint that does not record its task (as a foreign or older rsl-rl checkpoint)."""
+    import torch
+    from d3grasp.train.runner import read_checkpoint
+
+    data = read_checkpoint(path)
+    del data["infos"]["task"]
+    torch.save(data, path)
+
+
+def test_ablation_table(
+    tmp_path: Path,
+    manifest: Path,
+    checkpoint: Path,
+    compare_run: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Three checkpoints, three ways of knowing their task: the Base run's folder (a real 1-iteration
+    d3grasp-train run whose checkpoint no longer records it), TASK=PATH for a bare BaseTactile file,
+    the checkpoint itself for the asymmetric one."""
+    from d3grasp.train.train import main as train_main
+
+    logs = tmp_path / "logs"
+    argv = ["--task", BASE, "--num_envs", "2", "--max_iterations", "1", "--num_steps_per_env", "4"]
+    assert train_main([*argv, "--log_root", str(logs), "--torch_threads", "1"]) == 0
+    (base_ckpt,) = logs.glob("*/*/model_1.pt")
+    _drop_recorded_task(base_ckpt)
+    tactile_ckpt = _save_untrained_checkpoint(TACTILE, tmp_path / "model_0.pt", manifest)
+    _drop_recorded_task(tactile_ckpt)
+    capsys.readouterr()
+
+    # Bad input first: a task the file cannot tell, a given task the checkpoint contradicts, one entry.
+    out = tmp_path / "out"
+    common = ["--objects", str(manifest), "--grasp-types", "top", "--seed", "3", "--out", str(out), *QUICK]
+    assert main(["--ablation", str(base_ckpt), str(tactile_ckpt), *common]) == 2
+    assert f"TASK={tactile_ckpt}" in _error_line(capsys)
+    assert main(["--ablation", f"{BASE}={checkpoint}", str(base_ckpt), *common]) == 2
+    assert f"trained on task '{DEFAULT_TASK}', not on '{BASE}'" in _error_line(capsys)
+    assert main(["--ablation", str(checkpoint), *common]) == 2
+    _error_line(capsys)
+    with pytest.raises(SystemExit):  # argparse: --checkpoint and --ablation exclude each other
+        main(["--checkpoint", "baseline", "--ablation", str(checkpoint), str(base_ckpt), *common])
+    assert not out.exists()
+
+    entries = [str(base_ckpt), f"{TACTILE}={tactile_ckpt}", str(checkpoint)]
+    assert main(["--ablation", *entries, *common]) == 0
+    doc = _read(out)
+    assert doc["settings"]["checkpoint"] is None and doc["settings"]["ablation"] == entries
+    runs = {name: doc["runs"][name] for name in ("Base", "Base+Tactile", "Asymmetric")}  # ablation order
+    assert len(doc["runs"]) == 3  # results.json sorts its keys: the order is the settings' ablation list
+    assert [(r["task"], r["checkpoint"]) for r in runs.values()] == [
+        (BASE, str(base_ckpt)),
+        (TACTILE, str(tactile_ckpt)),
+        (DEFAULT_TASK, str(checkpoint)),
+    ]
+    # Same objects, seeds and grasp type for every variant; the asymmetric policy is the comparison
+    # run's policy (same checkpoint, same settings), so its episodes are the same too.
+    for run in runs.values():
+        assert [(ep["object"], ep["seed"], ep["grasp_type"]) for ep in run["episodes"]] == [
+            (o, 3, "top") for o in OBJECTS
+        ]
+    assert runs["Asymmetric"]["episodes"] == _read(compare_run)["runs"]["policy"]["episodes"]
+
+    table = (out / "table.md").read_text()
+    head, _, rest = table.partition("**Comparison:")
+    header = next(line for line in head.splitlines() if line.startswith("| metric"))
+    assert header == (
+        "| metric (%, 95% CI) | Base (symmetric; actor: proprioception) | Base+Tactile (symmetric; actor: "
+        "proprioception + tactile) | Asymmetric (asymmetric; actor: proprioception + tactile; critic: + "
+        "privileged) |"
+    )
+    for m in METRICS:  # every episode of each variant, recounted
+        cells = [_percent(sum(ep[m] for ep in r["episodes"]), len(OBJECTS)) for r in runs.values()]
+        assert f"| {m} | " + " | ".join(cells) + " |" in head
+    assert "| episodes | 2 | 2 | 2 |" in head
+    assert rest.count("| s_disturb |") == 3  # each variant's own evaluation table follows
+    assert (out / "plot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_parse_override() -> None:

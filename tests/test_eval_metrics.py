@@ -6,7 +6,13 @@ import math
 
 import pytest
 
-from d3grasp.eval.metrics import aggregate, table_markdown, wilson_interval
+from d3grasp.eval.metrics import (
+    ablation_markdown,
+    aggregate,
+    comparison_markdown,
+    table_markdown,
+    wilson_interval,
+)
 
 
 def test_wilson_interval_reference_values():
@@ -46,6 +52,9 @@ def test_aggregate_by_bin_and_kind():
     # Soft objects of every size go to the Deformable column, not to a size bin.
     assert s["Deformable"]["s_lift"].trials == 2 and s["Deformable"]["s_disturb"].successes == 1
     assert s["Average"]["s_lift"].successes == 4 and s["Average"]["s_lift"].trials == 6
+    # Diverse pools the four rigid episodes of every size bin (the comparison table's column).
+    assert (s["Diverse"]["s_grasp"].successes, s["Diverse"]["s_grasp"].trials) == (3, 4)
+    assert (s["Diverse"]["s_lift"].successes, s["Diverse"]["s_disturb"].successes) == (2, 1)
     md = table_markdown(s, "test")
     assert "| s_lift | 50.0 [" in md and "| episodes | 2 | 1 | 1 | 2 | 6 |" in md
 
@@ -53,3 +62,42 @@ def test_aggregate_by_bin_and_kind():
 def test_unknown_size_bin_is_an_error():
     with pytest.raises(ValueError, match="size bin"):
         aggregate([_rec("rigid", "huge", True, True, True)])
+
+
+def _many(kind, size_bin, n, g, lift, dist):
+    """``n`` episodes of which the first ``g`` grasp, ``lift`` lift and ``dist`` resist the pushes."""
+    return [_rec(kind, size_bin, i < g, i < lift, i < dist) for i in range(n)]
+
+
+# Textbook 95% Wilson intervals (percent, one decimal): 8/10, 0/10, 10/10, and 5/10 -> [23.7, 76.3].
+W8, W0, W10, W5 = "80.0 [49.0, 94.3]", "0.0 [0.0, 27.8]", "100.0 [72.2, 100.0]", "50.0 [23.7, 76.3]"
+
+
+def test_comparison_table_layout():
+    # Method A: 10 rigid (8 lift, 5 resist) in two bins, 10 soft (10 lift, 0 resist); B: rigid only.
+    a = _many("rigid", "small", 4, 4, 4, 2) + _many("rigid", "large", 6, 6, 4, 3)
+    a += _many("deformable", "medium", 10, 10, 10, 0)
+    b = _many("rigid", "medium", 10, 10, 0, 0)
+    md = comparison_markdown({"A": aggregate(a), "B": aggregate(b)}, "cmp")
+    lines = md.splitlines()
+    assert lines[0] == "**cmp**"
+    assert lines[2] == (
+        "| method (%, 95% CI) | Diverse s_lift | Diverse s_disturb | Deformable s_lift "
+        "| Deformable s_disturb | episodes (diverse / deformable) |"
+    )
+    assert lines[4] == f"| A | {W8} | {W5} | {W10} | {W0} | 10 / 10 |"
+    assert lines[5] == f"| B | {W0} | {W0} | – | – | 10 / 0 |"
+
+
+def test_ablation_table_layout():
+    # Every episode counts (the Average group): Base 10 rigid + 10 soft, Tactile 10 rigid.
+    base = _many("rigid", "small", 10, 10, 8, 5) + _many("deformable", "large", 10, 10, 8, 5)
+    tactile = _many("rigid", "medium", 10, 8, 5, 0)
+    md = ablation_markdown({"Base": aggregate(base), "Tac": aggregate(tactile)}, {"Tac": "Base+Tactile"})
+    lines = md.splitlines()
+    assert lines[0] == "| metric (%, 95% CI) | Base | Base+Tactile |"  # no title; header from the mapping
+    # 16/20 and 10/20: Wilson [58.4, 91.9] and [29.9, 70.1] (from the score-interval formula by hand).
+    assert lines[2] == f"| s_grasp | 100.0 [83.9, 100.0] | {W8} |"
+    assert lines[3] == f"| s_lift | 80.0 [58.4, 91.9] | {W5} |"
+    assert lines[4] == f"| s_disturb | 50.0 [29.9, 70.1] | {W0} |"
+    assert lines[5] == "| episodes | 20 | 10 |"

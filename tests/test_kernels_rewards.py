@@ -41,6 +41,7 @@ def random_batch(rng: np.random.Generator) -> dict[str, np.ndarray]:
         eps_bar=rng.uniform(0, 0.3, W),
         node_count=rng.integers(50, 600, W).astype(float),
         is_deformable=np.array([1, 0, 1, 1, 0, 1, 0]),
+        object_rise=np.array([-0.01, 0.0, 0.03, 0.1, 0.25, 0.07, 0.0]),
     )
 
 
@@ -68,6 +69,7 @@ def ref_terms(c: RewardConfig, b: dict[str, np.ndarray]) -> dict[str, np.ndarray
         - c.stability_ang * np.sum(b["obj_ang_vel"] ** 2, 1),
         "collision": c.collision * np.sum(np.log(d / c.safe_distance), 1),
         "deform": np.where(b["is_deformable"] != 0, -c.deform * b["node_count"] * b["eps_bar"], 0.0),
+        "lift": c.lift * np.minimum(np.maximum(b["object_rise"] / c.lift_height, 0.0), 1.0),
     }
     out["total"] = sum(out[n] for n in TERM_NAMES)
     return out
@@ -93,6 +95,8 @@ def ref_terms(c: RewardConfig, b: dict[str, np.ndarray]) -> dict[str, np.ndarray
             safe_distance=0.02,
             distance_floor=1e-3,
             deform=0.01,
+            lift=2.0,
+            lift_height=0.05,
         ),
     ],
 )
@@ -107,6 +111,8 @@ def test_every_term_matches_numpy(cfg: RewardConfig) -> None:
         assert got["symmetry"][0] == 0.0 and got["symmetry"][2] == pytest.approx(-cfg.symmetry)
         assert np.all(got["deform"][batch["is_deformable"] == 0] == 0.0)
         assert np.all(got["collision"] <= 0.0)
+        # Lift saturates at the lift height and is 0 for a sunk object (world 0).
+        assert got["lift"][0] == 0.0 and got["lift"][4] == pytest.approx(cfg.lift)
 
 
 def test_reward_gradients_with_tape() -> None:

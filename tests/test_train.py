@@ -419,8 +419,8 @@ def test_bad_inputs_give_one_line_errors(tmp_path: Path, capsys: pytest.CaptureF
     assert train_mod.main(_train_argv(tmp_path, extra=("--resume",))) == 2
     assert "nothing to resume" in capsys.readouterr().err
 
-    assert play_main(["--checkpoint", "x.pt", "--video", "out.gif"]) == 2
-    assert "not available yet" in capsys.readouterr().err
+    assert play_main(["--checkpoint", "x.pt", "--video", "out.avi"]) == 2
+    assert "--video must end in .gif or .mp4" in capsys.readouterr().err
 
 
 def test_checkpoint_of_another_task_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -21,6 +21,13 @@ def _positive(value: str) -> int:
     return n
 
 
+def _size(value: str) -> tuple[int, int]:
+    w, sep, h = value.lower().partition("x")
+    if not sep or not w.isdigit() or not h.isdigit() or int(w) < 8 or int(h) < 8:
+        raise argparse.ArgumentTypeError(f"expected WxH in pixels (at least 8x8), got '{value}'")
+    return int(w), int(h)
+
+
 def add_common_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", default=DEFAULT_TASK, help=f"registered task name (default {DEFAULT_TASK})")
     parser.add_argument(
@@ -80,11 +87,36 @@ def make_play_parser() -> argparse.ArgumentParser:
         description="Run a trained D3Grasp policy, report grasp outcomes, export TorchScript/ONNX, time it.",
     )
     add_common_args(p)
-    p.add_argument("--checkpoint", required=True, help="path of a model_<N>.pt written by d3grasp-train")
+    p.add_argument(
+        "--checkpoint",
+        required=True,
+        help="path of a model_<N>.pt written by d3grasp-train, 'shipped' (the package's trained policy) "
+        "or 'baseline' (the rule-based controller)",
+    )
     p.add_argument(
         "--episodes", type=_positive, default=10, help="finished episodes to evaluate (default 10)"
     )
-    p.add_argument("--video", default=None, help="out.gif | out.mp4 (not available yet)")
+    p.add_argument("--video", default=None, help="out.gif | out.mp4: ray-traced rollout of the first worlds")
+    p.add_argument("--video_fps", type=float, default=30.0, help="video and USD frame rate (default 30)")
+    p.add_argument(
+        "--video_size",
+        type=_size,
+        default=(240, 180),
+        metavar="WxH",
+        help="px per world tile (default 240x180)",
+    )
+    p.add_argument(
+        "--video_worlds", type=_positive, default=4, help="worlds tiled in the video / USD (default 4)"
+    )
+    p.add_argument("--video_frames", type=_positive, default=None, help="stop the video after N frames")
+    p.add_argument("--usd", default=None, help="out.usd(a): time-sampled USD animation of the rollout")
+    p.add_argument("--tactile_plot", default=None, help="out.png: pad forces over world 0's first episode")
+    p.add_argument(
+        "--perception",
+        choices=("oracle", "camera"),
+        default=None,
+        help="object pose for the grasp planner: simulator truth or the RGB-D camera (default: the task's)",
+    )
     p.add_argument("--no_export", action="store_true", help="skip the TorchScript/ONNX export")
     p.add_argument("--latency_steps", type=_positive, default=200, help="policy steps timed (default 200)")
     p.add_argument("--max_steps", type=_positive, default=None, help="stop after this many env steps")

@@ -30,8 +30,12 @@ from d3grasp.train.runner import D3GraspRunner, EpisodeStats, read_checkpoint  #
 from d3grasp.train.train import DistInfo, load_env_factory, resolve_device, seed_everything  # noqa: E402
 
 from d3grasp.envs.registry import get_task  # noqa: E402
+from d3grasp.policies import resolve_checkpoint  # noqa: E402
+from d3grasp.viz.rollout import PictureSettings, RolloutPictures  # noqa: E402
 
 __all__ = ["PlayResult", "format_episode", "main", "play"]
+
+BASELINE = "baseline"  # --checkpoint value that plays the rule-based controller
 
 
 @dataclass
@@ -95,51 +99,49 @@ def play(
     env_factory: str | Callable[..., Any] = "d3grasp.envs:make_env",
     max_steps: int | None = None,
     log: Callable[[str], None] = print,
+    perception: str | None = None,
+    pictures: PictureSettings | None = None,
 ) -> PlayResult:
     """Evaluate the checkpoint's deterministic policy until ``episodes`` episodes finished.
 
     The checkpoint is checked against the task's observation sizes before any weights load
     (``CheckpointError`` on mismatch or a missing file). The LSTM state of a world is zeroed when
-    its episode ends, as in training.
+    its episode ends, as in training. ``checkpoint="baseline"`` runs the rule-based controller
+    (nothing to export or time). ``perception`` ("oracle" | "camera") overrides the task's; ``pictures``
+    records a video, a USD animation and / or a tactile plot of the rollout.
     """
     get_task(task)
-    ckpt = Path(checkpoint)
-    data = read_checkpoint(ckpt)  # missing / unreadable file fails here, before the env is built
+    is_baseline = str(checkpoint) == BASELINE
+    ckpt = None if is_baseline else Path(resolve_checkpoint(str(checkpoint), task))  # "shipped" too
+    data = {} if ckpt is None else read_checkpoint(ckpt)  # a bad file fails here, before the env
     device = resolve_device(device, DistInfo())
     make = load_env_factory(env_factory) if isinstance(env_factory, str) else env_factory
     seed_everything(seed)
-    env = make(task, num_envs=num_envs, device=device, seed=seed)
+    overrides = {} if perception is None else {"perception": perception}  # custom factories need not know it
+    env = make(task, num_envs=num_envs, device=device, seed=seed, **overrides)
     result = PlayResult()
     try:
+        if ckpt is None:
+            from d3grasp.envs.baseline import RuleBasedController
+
+            controller = RuleBasedController(env)
+            log(f"[d3grasp] playing the rule-based baseline on {task}, {env.num_envs} worlds")
+            _rollout(env, controller.act, None, episodes, max_steps, pictures, result, log)
+            return result
         runner = load_runner(env, task, ckpt, device, data=data)
         policy = runner.get_inference_policy(device)
         policy.reset()
-
-        stats = EpisodeStats()
-        limit = max_steps or int(2 * (math.ceil(episodes / env.num_envs) + 1) * int(env.max_episode_length))
         log(f"[d3grasp] playing {ckpt} (iteration {data.get('iter')}) on {task}, {env.num_envs} worlds")
-        obs = env.get_observations()
-        with torch.inference_mode():
-            while len(result.episodes) < episodes and result.steps < limit:
-                actions = policy(obs.to(device))
-                obs, _, dones, extras = env.step(actions.to(env.device))
-                policy.reset(dones.to(device))  # fresh LSTM state for worlds that start a new episode
-                result.steps += 1
-                for ep in extras.get("episodes", ()):
-                    if len(result.episodes) >= episodes:
-                        break
-                    result.episodes.append(ep)
-                    stats.add([ep])
-                    log(format_episode(len(result.episodes), ep))
-        if len(result.episodes) < episodes:
-            log(f"[d3grasp] warning: only {len(result.episodes)} episodes finished in {result.steps} steps")
-        result.rates = stats.rates()
-        for line in _summary_lines(stats):
-            log(line)
 
+        def act(obs: Any) -> torch.Tensor:
+            return policy(obs.to(device))
+
+        def on_dones(dones: torch.Tensor) -> None:
+            policy.reset(dones.to(device))  # fresh LSTM state for worlds that start a new episode
+
+        _rollout(env, act, on_dones, episodes, max_steps, pictures, result, log)
         if export:
             actor = runner.alg.get_policy()
-            obs_sizes = runner.observation_sizes()
             meta = {
                 "task": task,
                 "checkpoint": ckpt.name,
@@ -147,7 +149,7 @@ def play(
                 "obs_groups": ",".join(actor.obs_groups),
                 "obs_dim": int(actor.obs_dim),
                 "num_actions": int(env.num_actions),
-                "obs_sizes": obs_sizes,
+                "obs_sizes": runner.observation_sizes(),
             }
             result.export = export_policy(actor, ckpt.parent / "exported", metadata=meta)
             log(f"[d3grasp] exported {result.export.jit} and {result.export.onnx}")
@@ -159,6 +161,44 @@ def play(
         if close is not None:
             close()
     return result
+
+
+def _rollout(
+    env: Any,
+    act: Callable[[Any], torch.Tensor],
+    on_dones: Callable[[torch.Tensor], None] | None,
+    episodes: int,
+    max_steps: int | None,
+    pictures: PictureSettings | None,
+    result: PlayResult,
+    log: Callable[[str], None],
+) -> None:
+    """Step ``env`` with ``act`` until ``episodes`` episodes finished; fill ``result``, print the summary."""
+    pics = RolloutPictures(env, pictures) if pictures is not None and pictures.any else None
+    stats = EpisodeStats()
+    limit = max_steps or int(2 * (math.ceil(episodes / env.num_envs) + 1) * int(env.max_episode_length))
+    obs = env.get_observations()
+    with torch.inference_mode():
+        while len(result.episodes) < episodes and result.steps < limit:
+            obs, _, dones, extras = env.step(act(obs).to(env.device))
+            if on_dones is not None:
+                on_dones(dones)
+            result.steps += 1
+            if pics is not None:
+                pics.after_step(extras)
+            for ep in extras.get("episodes", ()):
+                if len(result.episodes) >= episodes:
+                    break
+                result.episodes.append(ep)
+                stats.add([ep])
+                log(format_episode(len(result.episodes), ep))
+    if len(result.episodes) < episodes:
+        log(f"[d3grasp] warning: only {len(result.episodes)} episodes finished in {result.steps} steps")
+    result.rates = stats.rates()
+    for line in _summary_lines(stats):
+        log(line)
+    if pics is not None:
+        pics.finish(log)
 
 
 def _summary_lines(stats: EpisodeStats) -> list[str]:
@@ -175,15 +215,12 @@ def _summary_lines(stats: EpisodeStats) -> list[str]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args: argparse.Namespace = make_play_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
-    if args.video is not None:
-        print(
-            "d3grasp-play: error: --video is not available yet (rendering comes in a later release)",
-            file=sys.stderr,
-        )
-        return 2
     torch.set_num_threads(resolve_torch_threads(args.torch_threads))
 
     def body() -> None:
+        if args.video and Path(args.video).suffix.lower() not in (".gif", ".mp4"):
+            # Checked before the rollout, not when the file is written at its end.
+            raise ValueError(f"--video must end in .gif or .mp4, got '{args.video}'")
         play(
             args.task,
             args.checkpoint,
@@ -195,6 +232,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             latency_steps=args.latency_steps,
             env_factory=args.env_factory,
             max_steps=args.max_steps,
+            perception=args.perception,
+            pictures=PictureSettings(
+                video=args.video,
+                video_fps=args.video_fps,
+                video_size=args.video_size,
+                video_worlds=args.video_worlds,
+                video_frames=args.video_frames,
+                usd=args.usd,
+                usd_worlds=args.video_worlds,
+                tactile_plot=args.tactile_plot,
+            ),
         )
 
     return run_command("d3grasp-play", body)

@@ -29,7 +29,7 @@ from tensordict import TensorDict
 from d3grasp.authoring import hand as hand_def
 from d3grasp.authoring.hand import quat_xyzw_to_matrix
 from d3grasp.authoring.manifest import AssetEntry, read_manifest, resolve_asset_path
-from d3grasp.envs.config import GraspEnvConfig
+from d3grasp.envs.config import ACTION_MODES, PERCEPTION_MODES, GraspEnvConfig
 from d3grasp.envs.grasps import GRASP_NAMES, GRASP_TYPES, choose_grasp, grasp_pose
 from d3grasp.envs.scene import (
     HAND_ANCHOR_QUAT,
@@ -139,9 +139,29 @@ class GraspEnv:
         self.phase_start = {p: int(bounds[i]) for i, p in enumerate(PHASES)}
         self.max_episode_length = int(bounds[-1])
 
+        if cfg.action_mode not in ACTION_MODES:
+            raise ValueError(f"unknown action_mode '{cfg.action_mode}'; known: {list(ACTION_MODES)}")
+        if cfg.perception not in PERCEPTION_MODES:
+            raise ValueError(f"unknown perception '{cfg.perception}'; known: {list(PERCEPTION_MODES)}")
         self._load_objects()
         self._build()
         self._allocate_buffers()
+        # Camera perception: the grasp planner reads the object's pose and size from a depth image.
+        self.perception = None
+        self.loc_records: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        if cfg.perception == "camera":
+            from d3grasp.vision.perception import CameraPerception
+
+            self.perception = CameraPerception(
+                self.model, self.model.body_world.numpy(), self.layout.object_body, cfg.camera, cfg.seed
+            )
+        # Residual mode: the rule-based controller runs inside the env and the policy's actions are
+        # offsets on its joint targets (imported here: baseline.py imports this module).
+        self.residual_base = None
+        if cfg.action_mode == "residual":
+            from d3grasp.envs.baseline import RuleBasedController
+
+            self.residual_base = RuleBasedController(self)
         # Place every world before the first (uncaptured) step, so nothing starts interpenetrating.
         self.reset_all()
         self._capture()
@@ -330,6 +350,7 @@ class GraspEnv:
             is_deformable=wp.array(
                 (lay.object_kind == OBJECT_SOFT).astype(np.int32), dtype=wp.int32, device=dev
             ),
+            object_rise=wp.zeros(W, dtype=float, device=dev),
         )
         self.rw_out = rk.RewardBuffers.allocate(self.cfg.rewards, W, NUM_LINKS, NUM_PADS, device=dev)
 
@@ -360,6 +381,7 @@ class GraspEnv:
                 "env_dist",
                 "eps_bar",
                 "node_count",
+                "object_rise",
             )
         }
 
@@ -551,8 +573,12 @@ class GraspEnv:
             yaw = float(self.rng.uniform(-rnd.object_yaw, rnd.object_yaw)) if rnd.enabled else 0.0
             obj_pos = np.array([xy[0], xy[1], table + 0.5 * ex[2] + 0.001])
             qz = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
-            grasp = self._sample_grasp(w, ex)
-            gp = grasp_pose(grasp, obj_pos, yaw, ex, table)
+            plan_pos, plan_yaw, plan_ex = obj_pos, yaw, ex
+            if self.perception is not None:
+                # The planner sees the camera's estimate; the truth only scores its error.
+                plan_pos, plan_yaw, plan_ex = self._perceive(w, obj_pos, qz, yaw, ex)
+            grasp = self._sample_grasp(w, plan_ex)
+            gp = grasp_pose(grasp, plan_pos, plan_yaw, plan_ex, table)
             pre = gp.palm_pos - cfg.phases.pregrasp_clearance * gp.approach_dir
             root = (
                 palm_world_pose_to_free_q(pre, gp.palm_quat)
@@ -674,12 +700,39 @@ class GraspEnv:
         self.actions[env_ids] = self.open_action
         self.action_hist[env_ids] = self.open_action
         self.finger_target[env_ids] = self.open_pose
+        if self.residual_base is not None:
+            self.residual_base.reset(env_ids)
         self.t_object_force[env_ids] = 0.0
         self.s_grasp[env_ids] = False
         self.lift_ok[env_ids] = True
         self.disturb_ok[env_ids] = True
         self.max_strain[env_ids] = 0.0
         self.episode_return[env_ids] = 0.0
+
+    def _perceive(
+        self, w: int, obj_pos: np.ndarray, qz: np.ndarray, yaw: float, ex: np.ndarray
+    ) -> tuple[np.ndarray, float, np.ndarray]:
+        """Camera estimate (centre, yaw, extents) of world ``w``'s freshly placed object; logs its error."""
+        from d3grasp.vision.perception import localisation_error
+
+        lay = self.layout
+        particles = None
+        if lay.object_kind[w] == OBJECT_SOFT:
+            p0, n = int(lay.particle_start[w]), int(lay.particle_count[w])
+            c, s = math.cos(yaw), math.sin(yaw)
+            rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            particles = (p0, lay.rest_particle_q[p0 : p0 + n] @ rz.T + obj_pos)
+        est = self.perception.observe(
+            self.state_0,
+            w,
+            int(lay.object_body[w]),
+            np.concatenate([obj_pos, qz]) if lay.object_kind[w] == OBJECT_RIGID else None,
+            particles,
+            fallback_extents=np.full(3, 0.06),
+        )
+        err = localisation_error(est, obj_pos, yaw, ex)
+        self.loc_records[w] = {"perception": "camera", "loc_ok": bool(est.ok), **err.as_record()}
+        return est.centre, est.yaw, est.extents
 
     # ------------------------------------------------------------------------------------------
     # Phases and the scripted root
@@ -737,7 +790,12 @@ class GraspEnv:
         )
         lat = self.latency.clamp(max=hist.shape[1] - 1)
         applied = hist[torch.arange(self.num_envs), lat]
-        desired = self.lower + 0.5 * (applied + 1.0) * (self.upper - self.lower)
+        if self.residual_base is not None:
+            self.residual_base.act()  # advances the rule on the current touch readings
+            desired = self.residual_base.target + cfg.residual_scale * applied
+            desired = torch.minimum(torch.maximum(desired, self.lower), self.upper)
+        else:
+            desired = self.lower + 0.5 * (applied + 1.0) * (self.upper - self.lower)
         a = cfg.action_smoothing
         self.finger_target = a * desired + (1.0 - a) * self.finger_target
         self.t_target[self.i_finger_q] = self.finger_target
@@ -829,6 +887,10 @@ class GraspEnv:
                 self.strain_layout.node_counts, dtype=torch.float32
             )
         r["node_count"][:] = nodes
+        # Rise above the resting height, counted from the lift phase on (the kernel clamps it).
+        lifting = self.phase_of(self.episode_length_buf) >= PHASES.index("lift")
+        rise = torch.nan_to_num(obj_pos[:, 2] - self.object_start[:, 2])
+        r["object_rise"][:] = torch.where(lifting, rise, torch.zeros_like(rise))
         rk.compute_rewards(self.rw_in, self.rw_out)
         return torch.nan_to_num(self.t_reward_total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
 
@@ -919,6 +981,7 @@ class GraspEnv:
                     "max_strain": float(self.max_strain[w]),
                     "return": float(self.episode_return[w]),
                     "length": int(t[w]),
+                    **self.loc_records[w],  # camera perception: the episode's localisation error
                 }
             )
         return records
@@ -950,6 +1013,9 @@ class GraspEnv:
             (self.root_cmd_pos - self.grasp_palm_pos) * 10.0,
             self.grasp_palm_quat,
         ]
+        if self.residual_base is not None:
+            # The rule's current targets: what the residual is added to.
+            parts.append(2.0 * (self.residual_base.target - self.lower) / (self.upper - self.lower) - 1.0)
         policy = torch.cat(parts, dim=-1)
 
         obj_pos, obj_quat, obj_lin, obj_ang = self._object_state()

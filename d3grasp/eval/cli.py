@@ -2,9 +2,11 @@
 
     d3grasp-eval --checkpoint logs/rsl_rl/<exp>/<run>/model_1000.pt --compare baseline
     d3grasp-eval --checkpoint baseline --objects deformable --split test --episodes-per-object 3
+    d3grasp-eval --ablation <base run>/model_1000.pt <tactile run>/model_1000.pt <asym run>/model_1000.pt
 
-Writes ``results.json`` (settings and every episode), ``summary.csv``, ``table.md`` and, with
-matplotlib installed, ``plot.png`` to ``--out`` (default ``eval_out/``). ``--set KEY=VALUE``
+Writes ``results.json`` (settings and every episode), ``summary.csv``, ``table.md`` and ``plot.png``
+to ``--out`` (default ``eval_out/``). ``--ablation`` evaluates several checkpoints (each on the task
+it was trained on, or ``TASK=PATH``) into the paper's ablation table. ``--set KEY=VALUE``
 overrides an environment config field (``phases.disturb_per_direction=0.1``); it changes what is
 measured, so it is meant for debugging and quick checks, and is recorded in results.json.
 """
@@ -21,7 +23,14 @@ from typing import Any
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 from d3grasp.envs.registry import DEFAULT_TASK  # noqa: E402
-from d3grasp.eval.evaluate import BASELINE, GRASP_CHOICES, OBJECT_SETS, SPLITS, EvalSettings  # noqa: E402
+from d3grasp.eval.evaluate import (  # noqa: E402
+    BASELINE,
+    GRASP_CHOICES,
+    OBJECT_SETS,
+    PERCEPTIONS,
+    SPLITS,
+    EvalSettings,
+)
 
 __all__ = ["main", "make_parser", "parse_override"]
 
@@ -56,7 +65,19 @@ def make_parser() -> argparse.ArgumentParser:
         description="Evaluate a D3Grasp policy (or the rule-based baseline) in evaluation mode: success "
         "rates with 95%% Wilson intervals per size bin and for deformable objects.",
     )
-    p.add_argument("--checkpoint", required=True, help="model_<N>.pt written by d3grasp-train, or 'baseline'")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument(
+        "--checkpoint",
+        help="model_<N>.pt written by d3grasp-train, 'shipped' (the package's trained policy of --task) "
+        "or 'baseline' (the rule-based controller)",
+    )
+    which.add_argument(
+        "--ablation",
+        nargs="+",
+        metavar="[TASK=]CKPT",
+        help="ablation mode: several checkpoints (e.g. the Base, BaseTactile and asymmetric runs) in one "
+        "table, each on the task it was trained on (read from the checkpoint or its run folder, or TASK=)",
+    )
     p.add_argument("--task", default=DEFAULT_TASK, help=f"registered task (default {DEFAULT_TASK})")
     p.add_argument(
         "--objects",
@@ -86,6 +107,13 @@ def make_parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="debugging: override an env config field, e.g. phases.disturb_per_direction=0.1",
     )
+    p.add_argument(
+        "--perception",
+        choices=tuple(PERCEPTIONS),
+        default="oracle",
+        help="object pose for the grasp planner: simulator truth (oracle), the RGB-D camera, or both side "
+        "by side (adds a localisation-error table)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -102,7 +130,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     wp.config.quiet = True  # one line per cached kernel module would bury the progress bar
     settings = EvalSettings(
-        checkpoint=args.checkpoint,
+        checkpoint=args.checkpoint,  # None in the ablation mode
+        ablation=tuple(args.ablation or ()),
         task=args.task,
         objects=args.objects,
         split=args.split,
@@ -113,6 +142,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         compare_baseline=args.compare == BASELINE,
         device=args.device,
         env_overrides=dict(args.overrides),
+        perception=args.perception,
     )
 
     def body() -> None:

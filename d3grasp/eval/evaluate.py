@@ -8,15 +8,17 @@ the first episode of each world counts: in evaluation mode every episode runs to
 unless the simulation breaks, so one ``max_episode_length`` of steps finishes every world.
 
 With ``compare_baseline`` the baseline runs on the same objects, seeds and grasp types as the
-policy, so the two tables differ only in the controller. Everything written to ``results.json``
-depends only on the settings (no timings, no output paths): two runs with one seed give the
-same file.
+policy, so the two tables differ only in the controller. The ablation mode evaluates several
+checkpoints (the paper's Base, Base+Tactile and asymmetric variants), each on the task it was trained
+on (read from the checkpoint, else from its run folder's ``params/command.txt``, or given as
+``TASK=PATH``), on the same objects, seeds and grasp types, into one table. Everything written
+to ``results.json`` depends only on the settings (no timings, no output paths): two runs with one
+seed give the same file.
 """
 
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import math
 import os
@@ -29,8 +31,17 @@ import torch
 
 from d3grasp.authoring.manifest import AssetEntry, read_manifest
 from d3grasp.envs.config import GRASP_TYPES
-from d3grasp.envs.registry import DEFAULT_TASK, get_task
-from d3grasp.eval.metrics import COLUMNS, METRICS, aggregate, table_markdown
+from d3grasp.envs.registry import DEFAULT_TASK, TASKS, get_task
+from d3grasp.eval.metrics import (
+    COLUMNS,
+    GROUPS,
+    METRICS,
+    ablation_markdown,
+    aggregate,
+    comparison_markdown,
+    table_markdown,
+)
+from d3grasp.vision.perception import localisation_markdown, localisation_summary
 
 OBJECT_SETS: dict[str, tuple[str, ...]] = {
     "diverse": ("rigid",),
@@ -40,15 +51,29 @@ OBJECT_SETS: dict[str, tuple[str, ...]] = {
 GRASP_CHOICES: tuple[str, ...] = ("all", *GRASP_TYPES)
 SPLITS: tuple[str, ...] = ("test", "train", "all")
 BASELINE = "baseline"
+PERCEPTIONS: dict[str, tuple[str, ...]] = {
+    "oracle": ("oracle",),
+    "camera": ("camera",),
+    "both": ("oracle", "camera"),
+}
 # Config fields the evaluation sets itself; an override of them would silently change what is measured.
 RESERVED_OVERRIDES: frozenset[str] = frozenset(
-    {"objects", "eval_mode", "num_envs", "seed", "grasp_types", "device"}
+    {"objects", "eval_mode", "num_envs", "seed", "grasp_types", "device", "perception"}
 )
+# Ablation run names by training task: the paper's ablation table columns. Other tasks (the
+# asymmetric Diverse / Deformable variants) are named after their variant.
+ABLATION_NAMES: dict[str, str] = {
+    "D3Grasp-DexHand13-Base-v0": "Base",
+    "D3Grasp-DexHand13-BaseTactile-v0": "Base+Tactile",
+    DEFAULT_TASK: "Asymmetric",
+}
 
 __all__ = [
     "BASELINE",
     "EvalResult",
     "EvalSettings",
+    "RunSpec",
+    "checkpoint_task",
     "evaluate",
     "load_policy",
     "select_objects",
@@ -58,9 +83,11 @@ __all__ = [
 
 @dataclass
 class EvalSettings:
-    """What to evaluate and how. ``checkpoint`` is a ``model_<N>.pt`` path or ``"baseline"``."""
+    """What to evaluate and how. ``checkpoint`` is a ``model_<N>.pt`` path or ``"baseline"``; the
+    ablation mode instead names several checkpoints in ``ablation`` (``"PATH"`` or ``"TASK=PATH"``)
+    and sets ``checkpoint`` to None."""
 
-    checkpoint: str = BASELINE
+    checkpoint: str | None = BASELINE
     task: str = DEFAULT_TASK
     objects: str | None = None  # diverse | deformable | all | a manifest path; None: the task's kinds
     split: str | None = None  # test | train | all; None: test (shipped library) or all (own manifest)
@@ -71,9 +98,17 @@ class EvalSettings:
     compare_baseline: bool = False
     device: str = "cpu"
     env_overrides: dict[str, Any] = field(default_factory=dict)  # e.g. {"phases__disturb_per_direction": 0.1}
+    perception: str = "oracle"  # oracle | camera | both (each controller runs under both, side by side)
+    ablation: tuple[str, ...] = ()  # checkpoints of the ablation table, "PATH" or "TASK=PATH"
 
     def validate(self) -> None:
         get_task(self.task)  # UnknownTaskError
+        if (self.checkpoint is None) == (not self.ablation):
+            raise ValueError("give either a checkpoint or the ablation checkpoints, not both or neither")
+        if len(self.ablation) == 1:
+            raise ValueError("--ablation compares several checkpoints: give two or more")
+        if self.perception not in PERCEPTIONS:
+            raise ValueError(f"--perception must be one of {list(PERCEPTIONS)}, got '{self.perception}'")
         if self.split is not None and self.split not in SPLITS:
             raise ValueError(f"--split must be one of {list(SPLITS)}, got '{self.split}'")
         if self.grasp_types not in GRASP_CHOICES:
@@ -90,6 +125,16 @@ class EvalSettings:
                 raise ValueError(f"override '{key}' is set by the evaluation itself (use the eval flags)")
 
 
+@dataclass(frozen=True)
+class RunSpec:
+    """One controller of an evaluation: its label in the tables, the task whose environment it runs
+    in and its checkpoint (or ``"baseline"``)."""
+
+    label: str
+    task: str
+    checkpoint: str
+
+
 @dataclass
 class EvalResult:
     settings: EvalSettings
@@ -97,6 +142,7 @@ class EvalResult:
     manifest: str | None  # None: the shipped library
     runs: dict[str, list[dict[str, Any]]]  # controller label ("policy" / "baseline") -> episode records
     wall_s: float = 0.0  # not part of results.json (not reproducible)
+    specs: dict[str, RunSpec] = field(default_factory=dict)  # label -> what ran (task, checkpoint)
 
     def to_json(self) -> dict[str, Any]:
         """The reproducible content of ``results.json``: settings, objects, every episode, summaries."""
@@ -104,9 +150,19 @@ class EvalResult:
             "settings": {**asdict(self.settings), "manifest": self.manifest},
             "objects": self.objects,
             "runs": {
-                label: {"episodes": eps, "summary": summary_rows(eps)} for label, eps in self.runs.items()
+                label: {
+                    **self._spec_json(label),
+                    "episodes": eps,
+                    "summary": summary_rows(eps),
+                    **({"localisation": loc} if (loc := localisation_summary(eps)) is not None else {}),
+                }
+                for label, eps in self.runs.items()
             },
         }
+
+    def _spec_json(self, label: str) -> dict[str, str]:
+        spec = self.specs.get(label)
+        return {} if spec is None else {"task": spec.task, "checkpoint": spec.checkpoint}
 
 
 def select_objects(
@@ -135,6 +191,87 @@ def select_objects(
     return manifest, entries
 
 
+def _task_from_run_folder(checkpoint: Path) -> str | None:
+    """The ``--task`` of the ``d3grasp-train`` command recorded next to the checkpoint, if any."""
+    import shlex
+
+    command = checkpoint.parent / "params" / "command.txt"
+    if not command.is_file():
+        return None
+    words = shlex.split(command.read_text(encoding="utf-8"))
+    for i, word in enumerate(words):
+        if word == "--task" and i + 1 < len(words):
+            return words[i + 1]
+        if word.startswith("--task="):
+            return word.split("=", 1)[1]
+    return DEFAULT_TASK  # d3grasp-train without --task trains the default task
+
+
+def checkpoint_task(spec: str) -> tuple[str, str]:
+    """``(task, checkpoint path)`` of an ablation entry ``"PATH"`` or ``"TASK=PATH"``.
+
+    The task a checkpoint was trained on is read from the checkpoint (``d3grasp-train`` records it),
+    else from its run folder's ``params/command.txt``. A given task must agree with the recorded one;
+    a checkpoint whose task cannot be told needs it given. Raises ``CheckpointError`` (missing or
+    unreadable file), ``UnknownTaskError`` or ``ValueError``.
+    """
+    from d3grasp.train.runner import read_checkpoint
+
+    head, sep, rest = spec.partition("=")
+    # Only a registered-looking task name before "=" splits the entry: a path may contain "=" too.
+    given = head if sep and (head in TASKS or head.startswith("D3Grasp-")) else None
+    path = rest if given is not None else spec
+    if given is not None:
+        get_task(given)
+    infos = read_checkpoint(path).get("infos") or {}
+    recorded = infos.get("task") or _task_from_run_folder(Path(path))
+    if recorded is not None:
+        get_task(recorded)
+    if given is not None and recorded is not None and given != recorded:
+        raise ValueError(f"checkpoint {path} was trained on task '{recorded}', not on '{given}'")
+    task = given or recorded
+    if task is None:
+        raise ValueError(
+            f"cannot tell which task checkpoint {path} was trained on (no task in the checkpoint, no "
+            f"params/command.txt next to it): give it as TASK={path}"
+        )
+    return task, path
+
+
+def _ablation_name(task: str) -> str:
+    """``D3Grasp-DexHand13-Diverse-v0`` -> ``Diverse``; the paper's names for its ablation tasks."""
+    parts = task.split("-")
+    return ABLATION_NAMES.get(task, parts[2] if len(parts) == 4 else task)
+
+
+def run_specs(settings: EvalSettings) -> list[RunSpec]:
+    """The controllers to evaluate, in table order; checks every checkpoint before any env is built."""
+    from d3grasp.train.runner import read_checkpoint
+
+    if settings.ablation:
+        resolved = [checkpoint_task(spec) for spec in settings.ablation]
+        names = [_ablation_name(task) for task, _ in resolved]
+        specs = []
+        for (task, path), name in zip(resolved, names, strict=True):
+            if names.count(name) > 1 or name == BASELINE:  # two checkpoints of one task: tell them apart
+                name = f"{name} ({Path(path).parent.name}/{Path(path).name})"
+            specs.append(RunSpec(name, task, path))
+        if len({s.label for s in specs}) != len(specs):
+            raise ValueError(f"--ablation names one checkpoint twice: {list(settings.ablation)}")
+    elif settings.checkpoint == BASELINE:
+        specs = [RunSpec(BASELINE, settings.task, BASELINE)]
+    else:
+        assert settings.checkpoint is not None  # validate() ensured it
+        from d3grasp.policies import resolve_checkpoint
+
+        path = resolve_checkpoint(settings.checkpoint, settings.task)  # "shipped": the package's policy
+        read_checkpoint(path)  # a missing or unreadable file fails before any env is built
+        specs = [RunSpec("policy", settings.task, path)]
+    if settings.compare_baseline:
+        specs.append(RunSpec(BASELINE, settings.task, BASELINE))
+    return specs
+
+
 def load_policy(env: Any, task: str, checkpoint: str | os.PathLike[str], device: str) -> Any:
     """The checkpoint's deterministic actor (the same loader as ``d3grasp-play``)."""
     from d3grasp.train.play import load_runner
@@ -146,19 +283,19 @@ def load_policy(env: Any, task: str, checkpoint: str | os.PathLike[str], device:
 
 def _run_batch(
     env: Any,
-    controller: str,
+    run: RunSpec,
     settings: EvalSettings,
     on_episode: Callable[[], None],
 ) -> list[dict[str, Any]]:
-    """First finished episode of every world of ``env`` under the policy or the baseline."""
-    if controller == BASELINE:
+    """First finished episode of every world of ``env`` under the run's policy or the baseline."""
+    if run.checkpoint == BASELINE:
         from d3grasp.envs.baseline import RuleBasedController
 
         ctl = RuleBasedController(env)
         act: Callable[[Any], torch.Tensor] = ctl.act
         reset: Callable[[torch.Tensor], None] = lambda dones: None  # noqa: E731 (resets itself at t = 0)
     else:
-        policy = load_policy(env, settings.task, settings.checkpoint, settings.device)
+        policy = load_policy(env, run.task, run.checkpoint, settings.device)
         act = lambda obs: policy(obs.to(settings.device))  # noqa: E731
         reset = lambda dones: policy.reset(dones.to(settings.device))  # noqa: E731 (fresh LSTM state)
     first: dict[int, dict[str, Any]] = {}
@@ -191,35 +328,35 @@ def evaluate(
     from tqdm import tqdm
 
     from d3grasp.envs import make_env
-    from d3grasp.train.runner import read_checkpoint
     from d3grasp.train.train import seed_everything
 
     t0 = time.perf_counter()
     settings.validate()
-    if settings.checkpoint != BASELINE:
-        read_checkpoint(settings.checkpoint)  # a missing or unreadable file fails before any env is built
+    # Camera perception runs each controller again under a "<label>/camera" label.
+    jobs = [
+        (spec if p == "oracle" else replace(spec, label=f"{spec.label}/camera"), p)
+        for spec in run_specs(settings)
+        for p in PERCEPTIONS[settings.perception]
+    ]
+    specs = [spec for spec, _ in jobs]
     if settings.split is None:  # record the split actually used
         own_manifest = settings.objects is not None and settings.objects not in OBJECT_SETS
         settings = replace(settings, split="all" if own_manifest else "test")
     manifest, entries = select_objects(settings.objects, settings.split, settings.task)
     ids = [e.id for e in entries]
-    controllers = [settings.checkpoint] + ([BASELINE] if settings.compare_baseline else [])
-    labels = {
-        BASELINE: BASELINE,
-        settings.checkpoint: "policy" if settings.checkpoint != BASELINE else BASELINE,
-    }
     grasp_types = tuple(GRASP_TYPES) if settings.grasp_types == "all" else (settings.grasp_types,)
     make = env_factory or make_env
     K, W = settings.episodes_per_object, settings.num_envs
-    total = len(ids) * K * len(controllers)
+    total = len(ids) * K * len(specs)
+    tasks = ", ".join(dict.fromkeys(spec.task for spec in specs))
     log(
-        f"[d3grasp-eval] {len(ids)} objects x {K} episodes x {len(controllers)} controller(s) = {total} "
-        f"episodes on {settings.task}, {W} worlds per batch"
+        f"[d3grasp-eval] {len(ids)} objects x {K} episodes x {len(specs)} controller(s) = {total} "
+        f"episodes on {tasks}, {W} worlds per batch"
     )
-    runs: dict[str, list[dict[str, Any]]] = {labels[c]: [] for c in controllers}
+    runs: dict[str, list[dict[str, Any]]] = {spec.label: [] for spec in specs}
     with tqdm(total=total, unit="ep", disable=not progress, dynamic_ncols=True) as bar:
-        for controller in controllers:
-            label = labels[controller]
+        for spec, perception in jobs:
+            label = spec.label
             bar.set_description(label)
             for start in range(0, len(ids), W):
                 chunk = tuple(ids[start : start + W])
@@ -229,17 +366,18 @@ def evaluate(
                 for r in range(K):
                     seed_everything(settings.seed + r)
                     env = make(
-                        settings.task,
+                        spec.task,
                         num_envs=len(chunk),
                         device=settings.device,
                         seed=settings.seed + r,
                         eval_mode=True,
                         objects=objects_cfg,
                         grasp_types=grasp_types,
+                        perception=perception,
                         **settings.env_overrides,
                     )
                     try:
-                        eps = _run_batch(env, controller, settings, lambda: bar.update(1))
+                        eps = _run_batch(env, spec, settings, lambda: bar.update(1))
                     finally:
                         close = getattr(env, "close", None)
                         if close is not None:
@@ -255,14 +393,18 @@ def evaluate(
         manifest=str(manifest) if manifest is not None else None,
         runs=runs,
         wall_s=time.perf_counter() - t0,
+        specs={spec.label: spec for spec in specs},
     )
 
 
 def summary_rows(episodes: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """One row per (column, metric): successes, trials, rate and 95% Wilson interval (None if no trials)."""
+    """One row per (group, metric): successes, trials, rate and 95% Wilson interval (None if no trials).
+
+    The groups are the evaluation table's columns and Diverse (every rigid object, the comparison table's).
+    """
     summary = aggregate(episodes)
     rows = []
-    for col in COLUMNS:
+    for col in GROUPS:
         for m in METRICS:
             rate = summary[col][m]
             lo, hi = rate.interval
@@ -280,19 +422,52 @@ def summary_rows(episodes: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
-def _title(label: str, s: EvalSettings) -> str:
-    who = "rule-based baseline" if label == BASELINE else f"policy {Path(s.checkpoint).name}"
-    objects = s.objects or "task default"
+def _conditions(s: EvalSettings) -> str:
+    """What every run of one evaluation shares: objects, split, repeats, grasp types and seed."""
     return (
-        f"{who} on {s.task}: objects {objects}, split {s.split}, "
-        f"{s.episodes_per_object} episode(s) per object, grasp types {s.grasp_types}, seed {s.seed}"
+        f"objects {s.objects or 'task default'}, split {s.split}, {s.episodes_per_object} episode(s) per "
+        f"object, grasp types {s.grasp_types}, seed {s.seed}"
     )
+
+
+def _spec_of(result: EvalResult, label: str) -> RunSpec:
+    # A result built by hand (not by evaluate()) may carry no specs: fall back to its settings.
+    s = result.settings
+    checkpoint = BASELINE if label == BASELINE else str(s.checkpoint)
+    return result.specs.get(label) or RunSpec(label, s.task, checkpoint)
+
+
+def _title(spec: RunSpec, s: EvalSettings) -> str:
+    if spec.checkpoint == BASELINE:
+        who = "rule-based baseline"
+    else:
+        ckpt = Path(spec.checkpoint)
+        who = f"{'policy' if spec.label == 'policy' else spec.label} {ckpt.name}"
+        if s.ablation:  # several checkpoints are often all model_<N>.pt: name the run folder too
+            who = f"{spec.label} {ckpt.parent.name}/{ckpt.name}"
+    return f"{who} on {spec.task}: {_conditions(s)}"
+
+
+def _ablation_header(spec: RunSpec) -> str:
+    """The ablation table's column head: which senses the actor reads and whether the critic is
+    asymmetric (reads the privileged group), as in the paper's ablation table."""
+    if spec.checkpoint == BASELINE:
+        return "rule-based baseline"
+    task = get_task(spec.task)
+    actor = "proprioception + tactile" if task.make_cfg().tactile_obs else "proprioception"
+    if "privileged" in task.critic_groups:
+        return f"{spec.label} (asymmetric; actor: {actor}; critic: + privileged)"
+    return f"{spec.label} (symmetric; actor: {actor})"
 
 
 def write_outputs(
     result: EvalResult, out_dir: str | os.PathLike[str], log: Callable[[str], None] = print
 ) -> dict[str, Path]:
-    """Write results.json, summary.csv, table.md and (with matplotlib) plot.png; returns their paths."""
+    """Write results.json, summary.csv, table.md and plot.png; returns their paths.
+
+    table.md holds, in this order: the ablation table (ablation mode), the comparison table (two or
+    more runs) and the evaluation table of every run.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"results": out / "results.json", "summary": out / "summary.csv", "table": out / "table.md"}
@@ -314,25 +489,31 @@ def write_outputs(
                     }
                 )
 
-    tables = [
-        table_markdown(aggregate(eps), _title(label, result.settings)) for label, eps in result.runs.items()
-    ]
+    summaries = {label: aggregate(eps) for label, eps in result.runs.items()}
+    specs = {label: _spec_of(result, label) for label in result.runs}
+    tables = []
+    if result.settings.ablation:
+        headers = {label: _ablation_header(spec) for label, spec in specs.items()}
+        title = f"Ablation, every episode: {_conditions(result.settings)}"
+        tables.append(ablation_markdown(summaries, headers, title))
+    if len(summaries) > 1:
+        tables.append(comparison_markdown(summaries, f"Comparison: {_conditions(result.settings)}"))
+    tables += [table_markdown(summaries[label], _title(specs[label], result.settings)) for label in summaries]
+    loc_table = localisation_markdown(result.runs)
+    if loc_table:
+        tables.append(loc_table)
     paths["table"].write_text("\n".join(tables))
 
-    if importlib.util.find_spec("matplotlib") is None:
-        log("[d3grasp-eval] note: matplotlib is not installed, plot.png skipped (pip install matplotlib)")
-    else:
-        paths["plot"] = out / "plot.png"
-        _plot(result, paths["plot"])
+    paths["plot"] = out / "plot.png"
+    _plot(result, paths["plot"])
     return paths
 
 
 def _plot(result: EvalResult, path: Path) -> None:
     """Bars of s_lift and s_disturb per column, one colour per controller, with Wilson error bars."""
-    import matplotlib
+    from d3grasp.viz.figure import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.5), sharey=True)
     labels = list(result.runs)
@@ -345,16 +526,18 @@ def _plot(result: EvalResult, path: Path) -> None:
                 rate = summary[col][metric]
                 v = 0.0 if math.isnan(rate.value) else rate.value
                 lo, hi = rate.interval
-                vals.append(100 * v)
+                # No bar (NaN) for a column without episodes: a 0 bar would read as "all failed".
+                vals.append(100 * v if rate.trials else math.nan)
                 err_lo.append(0.0 if math.isnan(lo) else 100 * (v - lo))
                 err_hi.append(0.0 if math.isnan(hi) else 100 * (hi - v))
             xs = [i + (k - (len(labels) - 1) / 2) * width for i in range(len(COLUMNS))]
             ax.bar(xs, vals, width, yerr=[err_lo, err_hi], capsize=3, label=label)
-        ax.set_xticks(range(len(COLUMNS)), COLUMNS)
+        # Every controller ran the same objects, so the first run's episode counts label the columns.
+        counts = aggregate(result.runs[labels[0]]) if labels else {}
+        ticks = [f"{col}\n(n={counts[col][metric].trials})" if counts else col for col in COLUMNS]
+        ax.set_xticks(range(len(COLUMNS)), ticks)
         ax.set_title(metric)
         ax.set_ylim(0, 100)
     axes[0].set_ylabel("success (%, 95% CI)")
     axes[-1].legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)

@@ -3,7 +3,8 @@
 An episode record is the dict the environment returns in ``extras["episodes"]`` (keys used here:
 ``kind``, ``size_bin``, ``s_grasp``, ``s_lift``, ``s_disturb``). Columns follow the paper's
 evaluation table: rigid objects by size bin (Small, Medium, Large), all deformable objects
-(Deformable), and every episode (Average). Success rates from a few hundred episodes carry
+(Deformable), and every episode (Average); the paper's comparison table pools the rigid objects
+(Diverse). Success rates from a few hundred episodes carry
 several points of sampling error, so every rate comes with its Wilson score interval, which
 stays inside [0, 1] and behaves at 0% and 100% where the normal approximation does not.
 """
@@ -16,6 +17,9 @@ from dataclasses import dataclass
 
 METRICS: tuple[str, ...] = ("s_grasp", "s_lift", "s_disturb")
 COLUMNS: tuple[str, ...] = ("Small", "Medium", "Large", "Deformable", "Average")
+# Every group aggregate() reports: the evaluation table's columns and all rigid objects pooled, the
+# "Diverse" columns of the paper's comparison table.
+GROUPS: tuple[str, ...] = (*COLUMNS, "Diverse")
 _BIN_COLUMN = {"small": "Small", "medium": "Medium", "large": "Large"}
 
 
@@ -64,14 +68,16 @@ def column_of(record: Mapping) -> str:
 
 
 def aggregate(records: Iterable[Mapping]) -> dict[str, dict[str, Rate]]:
-    """``{column: {metric: Rate}}`` over the records; Average pools every episode."""
-    counts = {c: {m: [0, 0] for m in METRICS} for c in COLUMNS}
+    """``{group: {metric: Rate}}`` over the records, for every group of ``GROUPS``; Average pools
+    every episode, Diverse every rigid one."""
+    counts = {c: {m: [0, 0] for m in METRICS} for c in GROUPS}
     for r in records:
-        for col in (column_of(r), "Average"):
+        col = column_of(r)
+        for group in (col, "Average") if col == "Deformable" else (col, "Diverse", "Average"):
             for m in METRICS:
-                counts[col][m][0] += bool(r[m])
-                counts[col][m][1] += 1
-    return {c: {m: Rate(*counts[c][m]) for m in METRICS} for c in COLUMNS}
+                counts[group][m][0] += bool(r[m])
+                counts[group][m][1] += 1
+    return {c: {m: Rate(*counts[c][m]) for m in METRICS} for c in GROUPS}
 
 
 def table_markdown(summary: Mapping[str, Mapping[str, Rate]], title: str = "") -> str:
@@ -82,4 +88,42 @@ def table_markdown(summary: Mapping[str, Mapping[str, Rate]], title: str = "") -
     for m in METRICS:
         lines.append(f"| {m} | " + " | ".join(summary[c][m].percent() for c in COLUMNS) + " |")
     lines.append("| episodes | " + " | ".join(str(summary[c]["s_lift"].trials) for c in COLUMNS) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def comparison_markdown(summaries: Mapping[str, Mapping[str, Mapping[str, Rate]]], title: str = "") -> str:
+    """The paper's comparison table layout: one row per method (``{method: aggregate(...)}``), columns
+    s_lift and s_disturb on the diverse (all rigid) and the deformable objects."""
+    groups, metrics = ("Diverse", "Deformable"), ("s_lift", "s_disturb")
+    lines = [f"**{title}**", ""] if title else []
+    lines.append(
+        "| method (%, 95% CI) | "
+        + " | ".join(f"{g} {m}" for g in groups for m in metrics)
+        + " | episodes (diverse / deformable) |"
+    )
+    lines.append("|---|" + "---|" * (len(groups) * len(metrics) + 1))
+    for method, summary in summaries.items():
+        cells = [summary[g][m].percent() for g in groups for m in metrics]
+        counts = " / ".join(str(summary[g]["s_lift"].trials) for g in groups)
+        lines.append(f"| {method} | " + " | ".join(cells) + f" | {counts} |")
+    return "\n".join(lines) + "\n"
+
+
+def ablation_markdown(
+    summaries: Mapping[str, Mapping[str, Mapping[str, Rate]]],
+    headers: Mapping[str, str] | None = None,
+    title: str = "",
+) -> str:
+    """The paper's ablation table layout: rows s_grasp, s_lift, s_disturb over every episode (the
+    Average group); one column per variant (``{variant: aggregate(...)}``), headed ``headers[variant]``
+    where given."""
+    names = list(summaries)
+    heads = [(headers or {}).get(n, n) for n in names]
+    lines = [f"**{title}**", ""] if title else []
+    lines.append("| metric (%, 95% CI) | " + " | ".join(heads) + " |")
+    lines.append("|---|" + "---|" * len(names))
+    for m in METRICS:
+        lines.append(f"| {m} | " + " | ".join(summaries[n]["Average"][m].percent() for n in names) + " |")
+    episodes = (str(summaries[n]["Average"]["s_lift"].trials) for n in names)
+    lines.append("| episodes | " + " | ".join(episodes) + " |")
     return "\n".join(lines) + "\n"

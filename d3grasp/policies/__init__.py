@@ -1,0 +1,38 @@
+"""Trained policies shipped with the package, one folder per task.
+
+``--checkpoint shipped`` on ``d3grasp-play`` and ``d3grasp-eval`` resolves to the checkpoint of the
+task being run (``resolve_checkpoint``). Each folder holds the rsl-rl checkpoint (``model.pt``), its
+TorchScript and ONNX exports, the training curves and a model card (``MODEL_CARD.md``) with the exact
+command, iterations, env-steps, wall-clock and hardware.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+__all__ = ["SHIPPED", "SHIPPED_POLICIES", "resolve_checkpoint", "shipped_checkpoint"]
+
+SHIPPED = "shipped"
+"""The ``--checkpoint`` value that selects the shipped policy of the task."""
+
+# task -> folder under d3grasp/policies/
+SHIPPED_POLICIES: dict[str, str] = {"D3Grasp-DexHand13-Mixed-v0": "mixed_v0"}
+
+_ROOT = Path(__file__).resolve().parent
+
+
+def shipped_checkpoint(task: str) -> Path:
+    """Path of the shipped ``model.pt`` of ``task``; ``FileNotFoundError`` names the tasks that have one."""
+    folder = SHIPPED_POLICIES.get(task)
+    path = _ROOT / folder / "model.pt" if folder else None
+    if path is None or not path.is_file():
+        have = ", ".join(t for t, f in SHIPPED_POLICIES.items() if (_ROOT / f / "model.pt").is_file())
+        raise FileNotFoundError(
+            f"no shipped policy for task '{task}' (shipped: {have or 'none'}); pass a checkpoint path instead"
+        )
+    return path
+
+
+def resolve_checkpoint(checkpoint: str, task: str) -> str:
+    """``"shipped"`` -> the task's shipped checkpoint path; anything else unchanged."""
+    return str(shipped_checkpoint(task)) if checkpoint == SHIPPED else checkpoint
