@@ -445,6 +445,8 @@ def _title(spec: RunSpec, s: EvalSettings) -> str:
         who = f"{'policy' if spec.label == 'policy' else spec.label} {ckpt.name}"
         if s.ablation:  # several checkpoints are often all model_<N>.pt: name the run folder too
             who = f"{spec.label} {ckpt.parent.name}/{ckpt.name}"
+    if spec.label.endswith("/camera"):  # the camera-perception rerun of a controller (--perception both)
+        who += ", camera perception"
     return f"{who} on {spec.task}: {_conditions(s)}"
 
 
