@@ -106,7 +106,8 @@ def resume_checkpoint(experiment_dir: Path, load_run: str | None, checkpoint: st
     runs = sorted(p for p in experiment_dir.iterdir() if p.is_dir())
     if load_run:
         rx = re.compile(load_run)
-        runs = [p for p in runs if p.name == load_run or rx.fullmatch(p.name)]
+        # A search, not a full match: run folders start with a timestamp, users remember the run name.
+        runs = [p for p in runs if p.name == load_run or rx.search(p.name)]
         if not runs:
             raise CheckpointError(f"no run named or matching '{load_run}' in {experiment_dir}")
     # Newest first: the first run that holds a checkpoint (a run killed before its first save has none).

@@ -159,5 +159,10 @@ class GraspEnvConfig:
             lift=3.0,
         )
     )
+    # Per-step reward clip (0: off). A soft body that blows up or an object flung at metres per second
+    # gave single steps of -1e3 to -1e5 (distance and stability terms): one such step made the value
+    # loss jump from ~1e2 to ~5e5 and undid the critic. Real grasp steps stay within +-10. The
+    # per-term logs are unclipped.
+    reward_clip: float = 10.0
     tactile: TactileConfig = field(default_factory=TactileConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)

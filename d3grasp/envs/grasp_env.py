@@ -892,7 +892,9 @@ class GraspEnv:
         rise = torch.nan_to_num(obj_pos[:, 2] - self.object_start[:, 2])
         r["object_rise"][:] = torch.where(lifting, rise, torch.zeros_like(rise))
         rk.compute_rewards(self.rw_in, self.rw_out)
-        return torch.nan_to_num(self.t_reward_total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
+        total = torch.nan_to_num(self.t_reward_total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
+        clip = self.cfg.reward_clip
+        return total.clamp(-clip, clip) if clip > 0 else total
 
     def _score(self, t, phase_before, obj_pos, finite) -> tuple[torch.Tensor, torch.Tensor]:
         """Update the success metrics of every world; return (done, time_out)."""
