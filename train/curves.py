@@ -1,12 +1,12 @@
 """Training curves of a run as one PNG: mean return, success rates and reward terms over iterations.
 
-    python -m d3grasp.train.curves logs/rsl_rl/<experiment>/<run> --out curves.png
+    python -m d3grasp.train.curves logs/rsl_rl/<experiment>/<run> [<resumed run> ...] --out curves.png
 
-Reads the run's TensorBoard event files (every file in the folder, so a resumed run that wrote a
-second file is drawn as one curve) and plots, against the learning iteration and the env-steps
-consumed: the mean episode return, the success rates logged per finished batch of episodes
-(``Success/s_*/all``, smoothed over a window because a batch holds only a few episodes), and each
-reward term's mean per step.
+Reads the TensorBoard event files of the run folders given (a run and the runs resumed from it, in
+order: their iteration counts continue, so they are drawn as one curve) and plots against the
+learning iteration: the mean episode return, the success rates logged per finished batch of
+episodes (``Success/s_*/all``, smoothed over a window because a batch holds only a few episodes),
+and each reward term's mean per step.
 """
 
 from __future__ import annotations
@@ -23,15 +23,18 @@ __all__ = ["load_scalars", "plot_run", "main"]
 _SUCCESS = ("s_grasp", "s_lift", "s_disturb")
 
 
-def load_scalars(run_dir: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """``{tag: (steps, values)}`` over every event file of a run, later files winning on a step."""
+def load_scalars(*run_dirs: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``{tag: (steps, values)}`` over every event file of the runs, later files winning on a step."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    files = sorted(Path(run_dir).glob("events.out.tfevents.*"))
-    if not files:
-        raise FileNotFoundError(
-            f"{run_dir}: no TensorBoard event files (is this a d3grasp-train run folder?)"
-        )
+    files = []
+    for run_dir in run_dirs:
+        found = sorted(Path(run_dir).glob("events.out.tfevents.*"))
+        if not found:
+            raise FileNotFoundError(
+                f"{run_dir}: no TensorBoard event files (not a d3grasp-train run folder?)"
+            )
+        files += found
     merged: dict[str, dict[int, float]] = {}
     for f in files:
         acc = EventAccumulator(str(f), size_guidance={"scalars": 0})  # 0: keep every point
@@ -45,24 +48,36 @@ def load_scalars(run_dir: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]
     return out
 
 
-def _smooth(x: np.ndarray, window: int) -> np.ndarray:
-    """Trailing moving average (the first points average what exists so far)."""
+def _smooth(x: np.ndarray, window: int, weights: np.ndarray | None = None) -> np.ndarray:
+    """Trailing (weighted) moving average over ``window`` points; the first points average what exists.
+
+    Success rates are weighted by the episodes behind each point: a batch of 1 episode must not
+    count as much as a batch of 24.
+    """
     if len(x) == 0 or window <= 1:
         return x
-    c = np.cumsum(np.insert(x, 0, 0.0))
+    w = np.ones_like(x) if weights is None else np.asarray(weights, dtype=np.float64)
+    cx = np.cumsum(np.insert(x * w, 0, 0.0))
+    cw = np.cumsum(np.insert(w, 0, 0.0))
     idx = np.arange(1, len(x) + 1)
     lo = np.maximum(idx - window, 0)
-    return (c[idx] - c[lo]) / (idx - lo)
+    return (cx[idx] - cx[lo]) / np.maximum(cw[idx] - cw[lo], 1e-12)
 
 
 def plot_run(
-    run_dir: str | Path, out: str | Path, steps_per_iteration: int | None = None, window: int = 10
+    run_dirs: str | Path | Sequence[str | Path],
+    out: str | Path,
+    steps_per_iteration: int | None = None,
+    window: int = 10,
 ) -> Path:
-    """Write the curves PNG of a run; ``steps_per_iteration`` adds an env-steps axis label."""
+    """Write the curves PNG of a run (or a run and its resumptions); ``steps_per_iteration`` labels
+    the x axis with the env-steps an iteration consumed."""
+    if isinstance(run_dirs, (str, Path)):
+        run_dirs = [run_dirs]
     from d3grasp.viz.figure import pyplot, save_figure
 
     plt = pyplot()
-    s = load_scalars(run_dir)
+    s = load_scalars(*run_dirs)
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     xlabel = "learning iteration"
     if steps_per_iteration:
@@ -77,14 +92,16 @@ def plot_run(
     ax.grid(alpha=0.3)
 
     ax = axes[1]
+    # Episodes finished in each iteration (the weights of that iteration's success rates).
+    episodes = dict(zip(*s["Success/episodes"], strict=True)) if "Success/episodes" in s else {}
     for name, color in zip(_SUCCESS, ("tab:green", "tab:orange", "tab:red"), strict=True):
         tag = f"Success/{name}/all"
         if tag in s:
             it, v = s[tag]
-            ax.plot(it, v, color=color, alpha=0.2)
-            ax.plot(it, _smooth(v, window), color=color, label=name)
+            counts = np.array([episodes.get(int(i), 1.0) for i in it])
+            ax.plot(it, _smooth(v, window, counts), color=color, label=name)
     ax.set_ylim(-0.02, 1.02)
-    ax.set_title(f"success per finished batch (moving average of {window})")
+    ax.set_title(f"success rate (episode-weighted, last {window} logged batches)")
     ax.set_xlabel(xlabel)
     ax.legend(loc="upper left")
     ax.grid(alpha=0.3)
@@ -98,21 +115,20 @@ def plot_run(
     ax.legend(loc="lower right", fontsize=8)
     ax.grid(alpha=0.3)
 
-    fig.suptitle(Path(run_dir).name)
+    fig.suptitle(" + ".join(Path(d).name for d in run_dirs))
     return save_figure(fig, out, dpi=90)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m d3grasp.train.curves", description=__doc__.split("\n")[0])
-    p.add_argument("run_dir", help="a d3grasp-train run folder (holds events.out.tfevents.*)")
-    p.add_argument("--out", default=None, help="PNG path (default <run_dir>/curves.png)")
+    p.add_argument("run_dir", nargs="+", help="d3grasp-train run folder(s): a run, then its resumptions")
+    p.add_argument("--out", default=None, help="PNG path (default <last run_dir>/curves.png)")
     p.add_argument("--steps_per_iteration", type=int, default=None, help="num_envs x steps per env x ranks")
     p.add_argument("--window", type=int, default=10, help="moving-average window in logged points")
     args = p.parse_args(argv)
     try:
-        path = plot_run(
-            args.run_dir, args.out or Path(args.run_dir) / "curves.png", args.steps_per_iteration, args.window
-        )
+        out = args.out or Path(args.run_dir[-1]) / "curves.png"
+        path = plot_run(args.run_dir, out, args.steps_per_iteration, args.window)
     except FileNotFoundError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
