@@ -530,8 +530,9 @@ def _plot(result: EvalResult, path: Path) -> None:
                 lo, hi = rate.interval
                 # No bar (NaN) for a column without episodes: a 0 bar would read as "all failed".
                 vals.append(100 * v if rate.trials else math.nan)
-                err_lo.append(0.0 if math.isnan(lo) else 100 * (v - lo))
-                err_hi.append(0.0 if math.isnan(hi) else 100 * (hi - v))
+                # max(0, .): at 0/n or n/n the Wilson bound equals the rate up to round-off (-1e-17).
+                err_lo.append(0.0 if math.isnan(lo) else max(0.0, 100 * (v - lo)))
+                err_hi.append(0.0 if math.isnan(hi) else max(0.0, 100 * (hi - v)))
             xs = [i + (k - (len(labels) - 1) / 2) * width for i in range(len(COLUMNS))]
             ax.bar(xs, vals, width, yerr=[err_lo, err_hi], capsize=3, label=label)
         # Every controller ran the same objects, so the first run's episode counts label the columns.
