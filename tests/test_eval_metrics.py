@@ -31,6 +31,15 @@ def test_wilson_interval_reference_values():
         wilson_interval(3, 2)
 
 
+def test_wilson_interval_contains_the_rate_and_reaches_the_bounds_exactly():
+    # Analytically the interval always contains p = k/n, starts at 0 for k = 0 and ends at 1 for k = n.
+    for n in range(1, 200):
+        assert wilson_interval(0, n)[0] == 0.0 and wilson_interval(n, n)[1] == 1.0
+        for k in range(n + 1):
+            lo, hi = wilson_interval(k, n)
+            assert lo <= k / n <= hi
+
+
 def _rec(kind, size_bin, g, lift, dist):
     return {"kind": kind, "size_bin": size_bin, "s_grasp": g, "s_lift": lift, "s_disturb": dist}
 

@@ -34,7 +34,9 @@ def wilson_interval(successes: int, trials: int, z: float = 1.959963984540054) -
     denom = 1.0 + z2 / trials
     centre = (p + z2 / (2.0 * trials)) / denom
     half = z * math.sqrt(p * (1.0 - p) / trials + z2 / (4.0 * trials * trials)) / denom
-    return (max(0.0, centre - half), min(1.0, centre + half))
+    # The interval contains p, and is exactly [0, .] at p = 0 and [., 1] at p = 1; in floating point
+    # centre -/+ half misses both by ~1e-17, which made error bars negative. Clamp to the exact form.
+    return (min(max(0.0, centre - half), p), max(min(1.0, centre + half), p))
 
 
 @dataclass(frozen=True)
