@@ -9,12 +9,21 @@ import os
 import sys
 from collections.abc import Callable
 
+from d3grasp.envs.config import PERCEPTION_MODES
 from d3grasp.envs.registry import DEFAULT_TASK
 
-__all__ = ["add_common_args", "make_play_parser", "make_train_parser", "resolve_torch_threads"]
+__all__ = [
+    "add_common_args",
+    "make_play_parser",
+    "make_train_parser",
+    "positive_int",
+    "resolve_torch_threads",
+    "run_command",
+]
 
 
-def _positive(value: str) -> int:
+def positive_int(value: str) -> int:
+    """argparse type: an integer >= 1."""
     n = int(value)
     if n < 1:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
@@ -31,7 +40,7 @@ def _size(value: str) -> tuple[int, int]:
 def add_common_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", default=DEFAULT_TASK, help=f"registered task name (default {DEFAULT_TASK})")
     parser.add_argument(
-        "--num_envs", type=_positive, default=None, help="worlds per process (default: the task's)"
+        "--num_envs", type=positive_int, default=None, help="worlds per process (default: the task's)"
     )
     parser.add_argument("--seed", type=int, default=0, help="random seed (rank r uses seed + r)")
     parser.add_argument(
@@ -39,7 +48,7 @@ def add_common_args(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--torch_threads",
-        type=_positive,
+        type=positive_int,
         default=None,
         help="torch CPU threads per process (default 1: scale with processes, one per core)",
     )
@@ -57,9 +66,11 @@ def make_train_parser() -> argparse.ArgumentParser:
         "-m d3grasp.train.train ...).",
     )
     add_common_args(p)
-    p.add_argument("--max_iterations", type=_positive, default=None, help="PPO iterations to run")
-    p.add_argument("--num_steps_per_env", type=_positive, default=None, help="rollout length per iteration")
-    p.add_argument("--save_interval", type=_positive, default=None, help="checkpoint every N iterations")
+    p.add_argument("--max_iterations", type=positive_int, default=None, help="PPO iterations to run")
+    p.add_argument(
+        "--num_steps_per_env", type=positive_int, default=None, help="rollout length per iteration"
+    )
+    p.add_argument("--save_interval", type=positive_int, default=None, help="checkpoint every N iterations")
     p.add_argument(
         "--experiment_name", default=None, help="log folder under the log root (default: from task)"
     )
@@ -94,7 +105,7 @@ def make_play_parser() -> argparse.ArgumentParser:
         "or 'baseline' (the rule-based controller)",
     )
     p.add_argument(
-        "--episodes", type=_positive, default=10, help="finished episodes to evaluate (default 10)"
+        "--episodes", type=positive_int, default=10, help="finished episodes to evaluate (default 10)"
     )
     p.add_argument("--video", default=None, help="out.gif | out.mp4: ray-traced rollout of the first worlds")
     p.add_argument("--video_fps", type=float, default=30.0, help="video and USD frame rate (default 30)")
@@ -106,20 +117,20 @@ def make_play_parser() -> argparse.ArgumentParser:
         help="px per world tile (default 240x180)",
     )
     p.add_argument(
-        "--video_worlds", type=_positive, default=4, help="worlds tiled in the video / USD (default 4)"
+        "--video_worlds", type=positive_int, default=4, help="worlds tiled in the video / USD (default 4)"
     )
-    p.add_argument("--video_frames", type=_positive, default=None, help="stop the video after N frames")
+    p.add_argument("--video_frames", type=positive_int, default=None, help="stop the video after N frames")
     p.add_argument("--usd", default=None, help="out.usd(a): time-sampled USD animation of the rollout")
     p.add_argument("--tactile_plot", default=None, help="out.png: pad forces over world 0's first episode")
     p.add_argument(
         "--perception",
-        choices=("oracle", "camera"),
+        choices=PERCEPTION_MODES,
         default=None,
         help="object pose for the grasp planner: simulator truth or the RGB-D camera (default: the task's)",
     )
     p.add_argument("--no_export", action="store_true", help="skip the TorchScript/ONNX export")
-    p.add_argument("--latency_steps", type=_positive, default=200, help="policy steps timed (default 200)")
-    p.add_argument("--max_steps", type=_positive, default=None, help="stop after this many env steps")
+    p.add_argument("--latency_steps", type=positive_int, default=200, help="policy steps timed (default 200)")
+    p.add_argument("--max_steps", type=positive_int, default=None, help="stop after this many env steps")
     return p
 
 

@@ -30,12 +30,10 @@ from d3grasp.train.runner import D3GraspRunner, EpisodeStats, read_checkpoint  #
 from d3grasp.train.train import DistInfo, load_env_factory, resolve_device, seed_everything  # noqa: E402
 
 from d3grasp.envs.registry import get_task  # noqa: E402
-from d3grasp.policies import resolve_checkpoint  # noqa: E402
+from d3grasp.policies import BASELINE, resolve_checkpoint  # noqa: E402
 from d3grasp.viz.rollout import PictureSettings, RolloutPictures  # noqa: E402
 
-__all__ = ["PlayResult", "format_episode", "main", "play"]
-
-BASELINE = "baseline"  # --checkpoint value that plays the rule-based controller
+__all__ = ["Controller", "PlayResult", "format_episode", "load_runner", "main", "make_controller", "play"]
 
 
 @dataclass
@@ -87,6 +85,34 @@ def load_runner(env: Any, task: str, checkpoint: Any, device: str, data: dict | 
     return runner
 
 
+@dataclass
+class Controller:
+    """What drives the fingers in play and eval: a checkpoint's deterministic policy or the baseline."""
+
+    act: Callable[[Any], torch.Tensor]  # observations -> actions
+    on_dones: Callable[[torch.Tensor], None]  # called with each step's dones
+    runner: D3GraspRunner | None = None  # the policy's runner (export); None for the baseline
+
+
+def make_controller(
+    env: Any, task: str, checkpoint: Any, device: str, data: dict | None = None
+) -> Controller:
+    """The controller of ``checkpoint`` (a path, or ``"baseline"`` for the rule-based controller)."""
+    if str(checkpoint) == BASELINE:
+        from d3grasp.envs.baseline import RuleBasedController
+
+        # The rule resets a world itself when its episode starts (t = 0).
+        return Controller(RuleBasedController(env).act, lambda dones: None)
+    runner = load_runner(env, task, checkpoint, device, data=data)
+    policy = runner.get_inference_policy(device)
+    policy.reset()
+    return Controller(
+        act=lambda obs: policy(obs.to(device)),
+        on_dones=lambda dones: policy.reset(dones.to(device)),  # fresh LSTM state for new episodes
+        runner=runner,
+    )
+
+
 def play(
     task: str,
     checkpoint: str | os.PathLike[str],
@@ -121,26 +147,12 @@ def play(
     env = make(task, num_envs=num_envs, device=device, seed=seed, **overrides)
     result = PlayResult()
     try:
-        if ckpt is None:
-            from d3grasp.envs.baseline import RuleBasedController
-
-            controller = RuleBasedController(env)
-            log(f"[d3grasp] playing the rule-based baseline on {task}, {env.num_envs} worlds")
-            _rollout(env, controller.act, None, episodes, max_steps, pictures, result, log)
-            return result
-        runner = load_runner(env, task, ckpt, device, data=data)
-        policy = runner.get_inference_policy(device)
-        policy.reset()
-        log(f"[d3grasp] playing {ckpt} (iteration {data.get('iter')}) on {task}, {env.num_envs} worlds")
-
-        def act(obs: Any) -> torch.Tensor:
-            return policy(obs.to(device))
-
-        def on_dones(dones: torch.Tensor) -> None:
-            policy.reset(dones.to(device))  # fresh LSTM state for worlds that start a new episode
-
-        _rollout(env, act, on_dones, episodes, max_steps, pictures, result, log)
-        if export:
+        controller = make_controller(env, task, BASELINE if ckpt is None else ckpt, device, data=data)
+        who = "the rule-based baseline" if ckpt is None else f"{ckpt} (iteration {data.get('iter')})"
+        log(f"[d3grasp] playing {who} on {task}, {env.num_envs} worlds")
+        _rollout(env, controller, episodes, max_steps, pictures, result, log)
+        runner = controller.runner
+        if export and runner is not None:  # the baseline has nothing to export or time
             actor = runner.alg.get_policy()
             meta = {
                 "task": task,
@@ -165,24 +177,22 @@ def play(
 
 def _rollout(
     env: Any,
-    act: Callable[[Any], torch.Tensor],
-    on_dones: Callable[[torch.Tensor], None] | None,
+    controller: Controller,
     episodes: int,
     max_steps: int | None,
     pictures: PictureSettings | None,
     result: PlayResult,
     log: Callable[[str], None],
 ) -> None:
-    """Step ``env`` with ``act`` until ``episodes`` episodes finished; fill ``result``, print the summary."""
+    """Step ``env`` with ``controller`` until ``episodes`` episodes finished; fill ``result``, log."""
     pics = RolloutPictures(env, pictures) if pictures is not None and pictures.any else None
     stats = EpisodeStats()
     limit = max_steps or int(2 * (math.ceil(episodes / env.num_envs) + 1) * int(env.max_episode_length))
     obs = env.get_observations()
     with torch.inference_mode():
         while len(result.episodes) < episodes and result.steps < limit:
-            obs, _, dones, extras = env.step(act(obs).to(env.device))
-            if on_dones is not None:
-                on_dones(dones)
+            obs, _, dones, extras = env.step(controller.act(obs).to(env.device))
+            controller.on_dones(dones)
             result.steps += 1
             if pics is not None:
                 pics.after_step(extras)
@@ -218,9 +228,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(resolve_torch_threads(args.torch_threads))
 
     def body() -> None:
-        if args.video and Path(args.video).suffix.lower() not in (".gif", ".mp4"):
-            # Checked before the rollout, not when the file is written at its end.
-            raise ValueError(f"--video must end in .gif or .mp4, got '{args.video}'")
+        if args.video:
+            from d3grasp.viz.video import check_video_path
+
+            check_video_path(args.video)  # before the checkpoint is read and the env is built
         play(
             args.task,
             args.checkpoint,

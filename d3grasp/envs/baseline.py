@@ -96,4 +96,4 @@ class RuleBasedController:
         advance = closing[:, None] & uses & ~self.stopped
         step = cfg.close_speed * env.dt
         self.target = torch.where(advance, torch.minimum(self.target + step, env.upper), self.target)
-        return 2.0 * (self.target - env.lower) / (env.upper - env.lower) - 1.0
+        return env.normalize_joints(self.target)

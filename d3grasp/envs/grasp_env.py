@@ -30,10 +30,9 @@ from d3grasp.authoring import hand as hand_def
 from d3grasp.authoring.hand import quat_xyzw_to_matrix
 from d3grasp.authoring.manifest import AssetEntry, read_manifest, resolve_asset_path
 from d3grasp.envs.config import ACTION_MODES, PERCEPTION_MODES, GraspEnvConfig
-from d3grasp.envs.grasps import GRASP_NAMES, GRASP_TYPES, choose_grasp, grasp_pose
+from d3grasp.envs.grasps import GRASP_NAMES, GRASP_TYPES, choose_grasp, grasp_pose, rot_z
 from d3grasp.envs.scene import (
     HAND_ANCHOR_QUAT,
-    OBJECT_RIGID,
     OBJECT_SOFT,
     build_scene,
     palm_world_pose_to_free_q,
@@ -398,7 +397,7 @@ class GraspEnv:
         self.open_pose = self.lower.clone()
         abduction = torch.arange(0, NUM_FINGER_JOINTS, 4)
         self.open_pose[abduction] = 0.5 * (self.lower[abduction] + self.upper[abduction])
-        self.open_action = 2.0 * (self.open_pose - self.lower) / (self.upper - self.lower) - 1.0
+        self.open_action = self.normalize_joints(self.open_pose)
 
         H = self.cfg.obs.action_history
         self.episode_length_buf = torch.zeros(W, dtype=torch.long, device=tdev)
@@ -573,10 +572,14 @@ class GraspEnv:
             yaw = float(self.rng.uniform(-rnd.object_yaw, rnd.object_yaw)) if rnd.enabled else 0.0
             obj_pos = np.array([xy[0], xy[1], table + 0.5 * ex[2] + 0.001])
             qz = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
+            soft = lay.object_kind[w] == OBJECT_SOFT
+            p0, n = int(lay.particle_start[w]), int(lay.particle_count[w])
+            # A soft body's nodes at the new pose (its rest shape turned by the yaw).
+            placed = lay.rest_particle_q[p0 : p0 + n] @ rot_z(yaw).T + obj_pos if soft else None
             plan_pos, plan_yaw, plan_ex = obj_pos, yaw, ex
             if self.perception is not None:
                 # The planner sees the camera's estimate; the truth only scores its error.
-                plan_pos, plan_yaw, plan_ex = self._perceive(w, obj_pos, qz, yaw, ex)
+                plan_pos, plan_yaw, plan_ex = self._perceive(w, obj_pos, qz, yaw, ex, placed)
             grasp = self._sample_grasp(w, plan_ex)
             gp = grasp_pose(grasp, plan_pos, plan_yaw, plan_ex, table)
             pre = gp.palm_pos - cfg.phases.pregrasp_clearance * gp.approach_dir
@@ -600,7 +603,7 @@ class GraspEnv:
             self.t_palm_pos_end[w] = torch.as_tensor(pre, dtype=torch.float32)
             self.t_palm_quat[w] = torch.as_tensor(gp.palm_quat, dtype=torch.float32)
             self.object_start[w] = torch.as_tensor(obj_pos, dtype=torch.float32)
-            if lay.object_kind[w] == OBJECT_RIGID:
+            if not soft:
                 q0 = lay.object_joint_q[w]
                 jq[q0 : q0 + 7] = [*obj_pos, *qz]
                 b = lay.object_body[w]
@@ -608,11 +611,6 @@ class GraspEnv:
                 body_mass[b] = self.nominal_body_mass[b] * scale
                 inv_mass[b] = self.nominal_body_inv_mass[b] / scale
             else:
-                p0, n = lay.particle_start[w], lay.particle_count[w]
-                rest = lay.rest_particle_q[p0 : p0 + n]
-                c, s = math.cos(yaw), math.sin(yaw)
-                rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-                placed = rest @ rz.T + obj_pos
                 pq[p0 : p0 + n] = placed
                 t0, nt = lay.tet_start[w], lay.tet_count[w]
                 scale = self.rng.uniform(*rnd.youngs_modulus_scale) if rand else 1.0
@@ -710,24 +708,28 @@ class GraspEnv:
         self.episode_return[env_ids] = 0.0
 
     def _perceive(
-        self, w: int, obj_pos: np.ndarray, qz: np.ndarray, yaw: float, ex: np.ndarray
+        self,
+        w: int,
+        obj_pos: np.ndarray,
+        qz: np.ndarray,
+        yaw: float,
+        ex: np.ndarray,
+        placed_particles: np.ndarray | None,
     ) -> tuple[np.ndarray, float, np.ndarray]:
-        """Camera estimate (centre, yaw, extents) of world ``w``'s freshly placed object; logs its error."""
+        """Camera estimate (centre, yaw, extents) of world ``w``'s freshly placed object; logs its error.
+
+        ``placed_particles``: a soft object's nodes at the new pose (None for a rigid object).
+        """
         from d3grasp.vision.perception import localisation_error
 
         lay = self.layout
-        particles = None
-        if lay.object_kind[w] == OBJECT_SOFT:
-            p0, n = int(lay.particle_start[w]), int(lay.particle_count[w])
-            c, s = math.cos(yaw), math.sin(yaw)
-            rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            particles = (p0, lay.rest_particle_q[p0 : p0 + n] @ rz.T + obj_pos)
+        soft = placed_particles is not None
         est = self.perception.observe(
             self.state_0,
             w,
             int(lay.object_body[w]),
-            np.concatenate([obj_pos, qz]) if lay.object_kind[w] == OBJECT_RIGID else None,
-            particles,
+            None if soft else np.concatenate([obj_pos, qz]),
+            (int(lay.particle_start[w]), placed_particles) if soft else None,
             fallback_extents=np.full(3, 0.06),
         )
         err = localisation_error(est, obj_pos, yaw, ex)
@@ -770,6 +772,10 @@ class GraspEnv:
     # ------------------------------------------------------------------------------------------
     # Step
     # ------------------------------------------------------------------------------------------
+
+    def normalize_joints(self, q: torch.Tensor) -> torch.Tensor:
+        """Finger joint positions -> [-1, 1] over their limits (the absolute action scale)."""
+        return 2.0 * (q - self.lower) / (self.upper - self.lower) - 1.0
 
     def get_observations(self) -> TensorDict:
         assert self._obs is not None
@@ -998,7 +1004,7 @@ class GraspEnv:
         T = float(self.max_episode_length)
         q = torch.nan_to_num(self.t_joint_q[self.i_finger_q])
         qd = torch.nan_to_num(self.t_joint_qd[self.i_finger_dof])
-        q_norm = 2.0 * (q - self.lower) / (self.upper - self.lower) - 1.0
+        q_norm = self.normalize_joints(q)
         phase = self.phase_of(self.episode_length_buf)
         parts = []
         if self.cfg.tactile_obs:
@@ -1017,7 +1023,7 @@ class GraspEnv:
         ]
         if self.residual_base is not None:
             # The rule's current targets: what the residual is added to.
-            parts.append(2.0 * (self.residual_base.target - self.lower) / (self.upper - self.lower) - 1.0)
+            parts.append(self.normalize_joints(self.residual_base.target))
         policy = torch.cat(parts, dim=-1)
 
         obj_pos, obj_quat, obj_lin, obj_ang = self._object_state()

@@ -87,7 +87,8 @@ _R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # pal
 _R_SIDE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # palm faces +y, thumb up
 
 
-def _rz(a: float) -> np.ndarray:
+def rot_z(a: float) -> np.ndarray:
+    """Rotation matrix (3, 3) about world z by ``a`` rad."""
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
@@ -157,14 +158,14 @@ def grasp_pose(
         yaw -= math.copysign(math.pi, yaw)
     feasible = True
     if g.palm_vertical:
-        r = _rz(yaw) @ _R_SIDE
+        r = rot_z(yaw) @ _R_SIDE
         depth = across  # extent along the palm normal (horizontal)
         obj_height = float(obj_pos[2]) - table_height
         lateral = max(g.lateral_y, PALM_HALF_WIDTH + TABLE_CLEARANCE - obj_height)
         feasible = lateral <= 0.03
         offset = np.array([g.near_face_x + 0.5 * along, lateral, g.top_z + 0.5 * depth])
     else:
-        r = _rz(yaw) @ _R_DOWN
+        r = rot_z(yaw) @ _R_DOWN
         # Palm down (top and pinch): the type's own placement constants differ, the rule does not.
         offset = np.array([g.near_face_x + 0.5 * along, g.lateral_y, g.top_z + 0.5 * ex[2]])
     palm_pos = np.asarray(obj_pos, dtype=np.float64) - r @ offset

@@ -31,15 +31,9 @@ from d3grasp.eval.evaluate import (  # noqa: E402
     SPLITS,
     EvalSettings,
 )
+from d3grasp.train.cli_args import positive_int  # noqa: E402
 
 __all__ = ["main", "make_parser", "parse_override"]
-
-
-def _positive(value: str) -> int:
-    n = int(value)
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
-    return n
 
 
 def parse_override(text: str) -> tuple[str, Any]:
@@ -90,14 +84,14 @@ def make_parser() -> argparse.ArgumentParser:
         default=None,
         help="library split (default: test for the shipped library, all for an own manifest)",
     )
-    p.add_argument("--episodes-per-object", type=_positive, default=1, help="repeats, seeds S..S+K-1")
+    p.add_argument("--episodes-per-object", type=positive_int, default=1, help="repeats, seeds S..S+K-1")
     p.add_argument("--grasp-types", choices=GRASP_CHOICES, default="all", help="all: per-object rule")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="eval_out", help="output folder (default eval_out/)")
-    p.add_argument("--num_envs", type=_positive, default=16, help="worlds per batch (default 16)")
+    p.add_argument("--num_envs", type=positive_int, default=16, help="worlds per batch (default 16)")
     p.add_argument("--compare", choices=(BASELINE,), default=None, help="also run the baseline")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--torch_threads", type=_positive, default=None, help="torch CPU threads (default 1)")
+    p.add_argument("--torch_threads", type=positive_int, default=None, help="torch CPU threads (default 1)")
     p.add_argument(
         "--set",
         dest="overrides",

@@ -41,6 +41,7 @@ from d3grasp.eval.metrics import (
     comparison_markdown,
     table_markdown,
 )
+from d3grasp.policies import BASELINE, resolve_checkpoint
 from d3grasp.vision.perception import localisation_markdown, localisation_summary
 
 OBJECT_SETS: dict[str, tuple[str, ...]] = {
@@ -50,7 +51,6 @@ OBJECT_SETS: dict[str, tuple[str, ...]] = {
 }
 GRASP_CHOICES: tuple[str, ...] = ("all", *GRASP_TYPES)
 SPLITS: tuple[str, ...] = ("test", "train", "all")
-BASELINE = "baseline"
 PERCEPTIONS: dict[str, tuple[str, ...]] = {
     "oracle": ("oracle",),
     "camera": ("camera",),
@@ -75,7 +75,6 @@ __all__ = [
     "RunSpec",
     "checkpoint_task",
     "evaluate",
-    "load_policy",
     "select_objects",
     "write_outputs",
 ]
@@ -262,23 +261,12 @@ def run_specs(settings: EvalSettings) -> list[RunSpec]:
         specs = [RunSpec(BASELINE, settings.task, BASELINE)]
     else:
         assert settings.checkpoint is not None  # validate() ensured it
-        from d3grasp.policies import resolve_checkpoint
-
         path = resolve_checkpoint(settings.checkpoint, settings.task)  # "shipped": the package's policy
         read_checkpoint(path)  # a missing or unreadable file fails before any env is built
         specs = [RunSpec("policy", settings.task, path)]
     if settings.compare_baseline:
         specs.append(RunSpec(BASELINE, settings.task, BASELINE))
     return specs
-
-
-def load_policy(env: Any, task: str, checkpoint: str | os.PathLike[str], device: str) -> Any:
-    """The checkpoint's deterministic actor (the same loader as ``d3grasp-play``)."""
-    from d3grasp.train.play import load_runner
-
-    policy = load_runner(env, task, checkpoint, device).get_inference_policy(device)
-    policy.reset()
-    return policy
 
 
 def _run_batch(
@@ -288,22 +276,15 @@ def _run_batch(
     on_episode: Callable[[], None],
 ) -> list[dict[str, Any]]:
     """First finished episode of every world of ``env`` under the run's policy or the baseline."""
-    if run.checkpoint == BASELINE:
-        from d3grasp.envs.baseline import RuleBasedController
+    from d3grasp.train.play import make_controller  # the same policy / baseline loader as d3grasp-play
 
-        ctl = RuleBasedController(env)
-        act: Callable[[Any], torch.Tensor] = ctl.act
-        reset: Callable[[torch.Tensor], None] = lambda dones: None  # noqa: E731 (resets itself at t = 0)
-    else:
-        policy = load_policy(env, run.task, run.checkpoint, settings.device)
-        act = lambda obs: policy(obs.to(settings.device))  # noqa: E731
-        reset = lambda dones: policy.reset(dones.to(settings.device))  # noqa: E731 (fresh LSTM state)
+    controller = make_controller(env, run.task, run.checkpoint, settings.device)
     first: dict[int, dict[str, Any]] = {}
     obs = env.get_observations()
     with torch.inference_mode():
         for _ in range(int(env.max_episode_length)):
-            obs, _, dones, extras = env.step(act(obs).to(env.device))
-            reset(dones)
+            obs, _, dones, extras = env.step(controller.act(obs).to(env.device))
+            controller.on_dones(dones)
             for ep in extras.get("episodes", ()):
                 if ep["env"] not in first:
                     first[ep["env"]] = ep

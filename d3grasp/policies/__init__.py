@@ -10,10 +10,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["SHIPPED", "SHIPPED_POLICIES", "resolve_checkpoint", "shipped_checkpoint"]
+__all__ = ["BASELINE", "SHIPPED", "SHIPPED_POLICIES", "resolve_checkpoint", "shipped_checkpoint"]
 
 SHIPPED = "shipped"
 """The ``--checkpoint`` value that selects the shipped policy of the task."""
+
+BASELINE = "baseline"
+"""The ``--checkpoint`` value that runs the rule-based controller (d3grasp.envs.baseline) instead."""
 
 # task -> folder under d3grasp/policies/
 SHIPPED_POLICIES: dict[str, str] = {"D3Grasp-DexHand13-Mixed-v0": "mixed_v0"}

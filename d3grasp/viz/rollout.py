@@ -29,9 +29,9 @@ class RolloutPictures:
         self.settings = settings
         self.video = self.usd = self.tactile = None
         if settings.video:
-            if Path(settings.video).suffix.lower() not in (".gif", ".mp4"):
-                raise ValueError(f"--video must end in .gif or .mp4, got '{settings.video}'")
-            from d3grasp.viz.video import VideoRecorder
+            from d3grasp.viz.video import VideoRecorder, check_video_path
+
+            check_video_path(settings.video)  # before the rollout, not when the file is written
 
             self.video = VideoRecorder(
                 env,

@@ -16,6 +16,17 @@ import numpy as np
 
 from d3grasp.vision.camera import CameraIntrinsics, RGBDCamera, look_at_pose
 
+VIDEO_SUFFIXES: tuple[str, ...] = (".gif", ".mp4")
+
+
+def check_video_path(path: str | Path) -> Path:
+    """``path`` as a Path if it names a format we write (GIF or MP4), else ``ValueError``."""
+    path = Path(path)
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise ValueError(f"--video must end in .gif or .mp4, got '{path.name}'")
+    return path
+
+
 # Display colours (sRGB, 0..1): only the pictures read them, physics never does.
 HAND_COLOR = (0.62, 0.66, 0.72)
 PAD_COLOR = (0.85, 0.35, 0.25)
@@ -182,21 +193,18 @@ class VideoRecorder:
         """GIF (Pillow) or MP4 (ffmpeg via imageio-ffmpeg), chosen by the suffix."""
         import imageio.v2 as imageio
 
-        path = Path(path)
+        path = check_video_path(path)
         if not self.frames:
             raise ValueError("no frames captured")
         path.parent.mkdir(parents=True, exist_ok=True)
-        suffix = path.suffix.lower()
-        if suffix == ".gif":
+        if path.suffix.lower() == ".gif":
             # Pillow's GIF writer takes the frame duration in milliseconds; loop=0 repeats forever.
             imageio.mimsave(path, self.frames, duration=1000.0 / self.fps, loop=0)
-        elif suffix == ".mp4":
+        else:  # .mp4
             # yuv420p needs even sizes; macro_block_size=2 pads to that instead of resizing to 16.
             with imageio.get_writer(
                 path, fps=self.fps, codec="libx264", pixelformat="yuv420p", macro_block_size=2, quality=7
             ) as writer:
                 for f in self.frames:
                     writer.append_data(f)
-        else:
-            raise ValueError(f"video must end in .gif or .mp4, got '{path.name}'")
         return path
