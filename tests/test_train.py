@@ -334,10 +334,19 @@ def test_train_resume_play_export(tmp_path: Path, capsys: pytest.CaptureFixture[
     steps = {int(s["step"]) for s in data["optimizer_state_dict"]["state"].values()}
     assert steps == {2 * per_it}
 
-    # Resume: a new run folder continues the count and the optimizer state.
-    assert train_mod.main(_train_argv(tmp_path, extra=("--resume", "--run_name", "more"))) == 0
+    # Resume: a new run folder continues the count and the optimizer state; --set changes the
+    # training env's config and params/env.json records it.
+    more = ("--resume", "--run_name", "more", "--set", "phases.disturb_per_direction=0.5")
+    assert train_mod.main(_train_argv(tmp_path, extra=more)) == 0
     run2 = _run_dirs(tmp_path)[-1]
     assert run2.name.endswith("_more")
+    if REAL_ENV:
+        import json
+
+        env1 = json.loads((run1 / "params" / "env.json").read_text())
+        env2 = json.loads((run2 / "params" / "env.json").read_text())
+        assert env1["phases"]["disturb_per_direction"] == 2.0
+        assert env2["phases"]["disturb_per_direction"] == 0.5
     data2 = read_checkpoint(run2 / "model_4.pt")
     assert data2["iter"] == 4
     assert {int(s["step"]) for s in data2["optimizer_state_dict"]["state"].values()} == {4 * per_it}

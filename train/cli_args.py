@@ -5,17 +5,21 @@ name them (``--task``, ``--num_envs``, ``--max_iterations``, ``--resume --load_r
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from collections.abc import Callable
+from typing import Any
 
 from d3grasp.envs.config import PERCEPTION_MODES
 from d3grasp.envs.registry import DEFAULT_TASK
 
 __all__ = [
     "add_common_args",
+    "add_env_override_arg",
     "make_play_parser",
     "make_train_parser",
+    "parse_override",
     "positive_int",
     "resolve_torch_threads",
     "run_command",
@@ -35,6 +39,36 @@ def _size(value: str) -> tuple[int, int]:
     if not sep or not w.isdigit() or not h.isdigit() or int(w) < 8 or int(h) < 8:
         raise argparse.ArgumentTypeError(f"expected WxH in pixels (at least 8x8), got '{value}'")
     return int(w), int(h)
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """``"phases.disturb_per_direction=0.1"`` -> ``("phases__disturb_per_direction", 0.1)``.
+
+    The value is read as JSON when it parses (numbers, true/false, lists), else kept as a string.
+    """
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise argparse.ArgumentTypeError(f"--set expects KEY=VALUE, got '{text}'")
+    try:
+        value: Any = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    if isinstance(value, list):
+        value = tuple(value)  # config sequences are tuples
+    return key.strip().replace(".", "__"), value
+
+
+def add_env_override_arg(parser: argparse.ArgumentParser, help_text: str) -> None:
+    """``--set KEY=VALUE`` (repeatable): environment config overrides, collected in ``args.overrides``."""
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        type=parse_override,
+        default=[],
+        metavar="KEY=VALUE",
+        help=help_text,
+    )
 
 
 def add_common_args(parser: argparse.ArgumentParser) -> None:
@@ -78,6 +112,11 @@ def make_train_parser() -> argparse.ArgumentParser:
     p.add_argument("--log_root", default=os.path.join("logs", "rsl_rl"), help="default logs/rsl_rl")
     p.add_argument("--logger", choices=("tensorboard", "wandb"), default="tensorboard")
     p.add_argument("--log_project_name", default=None, help="wandb project (default: experiment name)")
+    add_env_override_arg(
+        p,
+        "override a training env config field, e.g. phases.disturb_per_direction=1.0 (recorded in "
+        "params/env.json; evaluation uses the task's own config)",
+    )
     p.add_argument(
         "--resume", action="store_true", help="continue from a checkpoint (weights, optimizer, count)"
     )

@@ -170,7 +170,8 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
     seed = int(args.seed) + dist.rank
     seed_everything(seed)
     make = load_env_factory(args.env_factory)
-    env = make(args.task, num_envs=args.num_envs, device=device, seed=seed)
+    env_overrides = dict(getattr(args, "overrides", None) or ())
+    env = make(args.task, num_envs=args.num_envs, device=device, seed=seed, **env_overrides)
     try:
         alg = train_cfg["algorithm"]
         alg["num_mini_batches"] = fit_mini_batches(alg["num_mini_batches"], env.num_envs)

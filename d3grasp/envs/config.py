@@ -35,6 +35,10 @@ class SimConfig:
     kinematic_palm: bool = True  # palm prescribed each substep instead of the driven 6-DoF root chain
     collide_every: int = 1  # substeps per collision detection; VBD re-evaluates contacts each iteration
     rigid_contacts_per_world: int = 256  # rigid contact capacity per world; grasps use < 100
+    # SolverVBD's per-body list of body-body contacts (Newton's default 64). Objects of many hulls
+    # overflow it (Newton warns "Per-body rigid contact buffer overflowed"); 256 silences that but
+    # left the baseline's train-split lift rate where it was (27 vs 24 of 124, within run-to-run noise).
+    body_contact_buffer: int = 64
     use_graph: bool = True  # capture one control step as a Warp graph; False = plain loop (debug)
     shape_mu: float = 1.0  # friction of hand and table shapes
     soft_contact_ke: float = 1.0e4

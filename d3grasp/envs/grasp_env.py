@@ -266,6 +266,7 @@ class GraspEnv:
                 iterations=sim.iterations,
                 rigid_contact_history=True,
                 particle_enable_self_contact=False,
+                rigid_body_contact_buffer_size=sim.body_contact_buffer,
             )
             self.observables = self.solver.observables(kinds={"contact_f"}, contacts=self.contacts)
 

@@ -14,11 +14,9 @@ measured, so it is meant for debugging and quick checks, and is recorded in resu
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from collections.abc import Sequence
-from typing import Any
 
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
@@ -31,26 +29,9 @@ from d3grasp.eval.evaluate import (  # noqa: E402
     SPLITS,
     EvalSettings,
 )
-from d3grasp.train.cli_args import positive_int  # noqa: E402
+from d3grasp.train.cli_args import add_env_override_arg, parse_override, positive_int  # noqa: E402
 
 __all__ = ["main", "make_parser", "parse_override"]
-
-
-def parse_override(text: str) -> tuple[str, Any]:
-    """``"phases.disturb_per_direction=0.1"`` -> ``("phases__disturb_per_direction", 0.1)``.
-
-    The value is read as JSON when it parses (numbers, true/false, lists), else kept as a string.
-    """
-    key, sep, raw = text.partition("=")
-    if not sep or not key.strip():
-        raise argparse.ArgumentTypeError(f"--set expects KEY=VALUE, got '{text}'")
-    try:
-        value: Any = json.loads(raw)
-    except json.JSONDecodeError:
-        value = raw
-    if isinstance(value, list):
-        value = tuple(value)  # config sequences are tuples
-    return key.strip().replace(".", "__"), value
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -92,15 +73,7 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--compare", choices=(BASELINE,), default=None, help="also run the baseline")
     p.add_argument("--device", default="cpu")
     p.add_argument("--torch_threads", type=positive_int, default=None, help="torch CPU threads (default 1)")
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        type=parse_override,
-        default=[],
-        metavar="KEY=VALUE",
-        help="debugging: override an env config field, e.g. phases.disturb_per_direction=0.1",
-    )
+    add_env_override_arg(p, "debugging: override an env config field, e.g. phases.disturb_per_direction=0.1")
     p.add_argument(
         "--perception",
         choices=tuple(PERCEPTIONS),
