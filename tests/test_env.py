@@ -38,8 +38,8 @@ def test_observation_groups_shapes_and_dtypes(mixed_env):
     k = env.cfg.obs.action_history
     # tactile 33 + contacts 11 + q 16 + qd 16 + history 16k + step 3 + grasp 3 + phase 6 + root cmd 7
     # touch 33 + 11, q, qd, k actions, clock 3, grasp type 3, phase, root command 7, the rule's targets 16
-    # (residual mode)
-    assert obs["policy"].shape == (2, 33 + 11 + 16 + 16 + 16 * k + 3 + 3 + len(PHASES) + 7 + 16)
+    # and the filtered residual 16 (residual mode)
+    assert obs["policy"].shape == (2, 33 + 11 + 16 + 16 + 16 * k + 3 + 3 + len(PHASES) + 7 + 16 + 16)
     # object pos 3, quat 4, lin 3, ang 3, 17 link distances, eps, sigma, mass, friction, log E, 33 forces
     assert obs["privileged"].shape == (2, 3 + 4 + 3 + 3 + 17 + 5 + 33)
     assert obs["policy"].dtype == torch.float32 and obs["privileged"].dtype == torch.float32
@@ -141,6 +141,26 @@ def test_zero_residual_reproduces_the_rule_based_controller():
         _, _, _, extras = env.step(torch.zeros(1, 16))
         episodes += extras.get("episodes", [])
     assert episodes[0]["s_lift"], episodes[0]
+
+
+def test_residual_is_low_pass_filtered():
+    """A constant residual action a reaches the joints as the geometric series a (1 - (1 - b)^k), on top
+    of the rule's target and through the outer target smoothing (recomputed here step by step)."""
+    b = 0.25
+    env = _env((RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, residual_smoothing=b)
+    action = torch.linspace(-1.0, 1.0, 16)[None]
+    rest = env.residual_base.target.clone()  # the rule holds its rest pose through the approach
+    a_s, target = env.cfg.action_smoothing, env.finger_target.clone()
+    for k in range(1, 9):
+        env.step(action)
+        residual = action * (1.0 - (1.0 - b) ** k)
+        torch.testing.assert_close(env.residual, residual, atol=1e-6, rtol=0)
+        torch.testing.assert_close(env.get_observations()["policy"][:, -16:], residual, atol=1e-6, rtol=0)
+        desired = torch.clamp(rest + env.cfg.residual_scale * residual, env.lower, env.upper)
+        target = a_s * desired + (1.0 - a_s) * target
+        torch.testing.assert_close(env.finger_target, target, atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="residual_smoothing"):
+        _env((RIGID_MEDIUM_BOX,), residual_smoothing=0.0)
 
 
 def test_disturbance_force_pushes_a_free_object():

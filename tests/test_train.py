@@ -412,6 +412,26 @@ def test_hidden_state_reset_for_finished_episodes(tmp_path: Path) -> None:
     assert ended.tolist() == [True, False, False]
 
 
+@pytest.mark.parametrize("scale", [0.01, None])
+def test_fresh_policy_starts_at_the_zero_residual(scale: float | None) -> None:
+    """With the output layer scaled (the default) a fresh policy's mean action is ~0, i.e. the rule-based
+    controller in residual mode; rsl-rl's own init (None) gives O(0.1) actions that jitter."""
+    env = StandInEnv(DEFAULT_TASK, num_envs=4, seed=0)
+    cfg = make_train_cfg(DEFAULT_TASK, actor_output_init_scale=scale)
+    cfg["algorithm"]["num_mini_batches"] = 1
+    policy = D3GraspRunner(env, cfg, log_dir=None, task_name=DEFAULT_TASK).get_inference_policy("cpu")
+    obs, largest = env.get_observations(), 0.0
+    with torch.inference_mode():
+        for _ in range(6):
+            act = policy(obs)
+            largest = max(largest, float(act.abs().max()))
+            obs, *_ = env.step(act)
+    if scale is None:
+        assert largest > 0.05
+    else:
+        assert largest < 0.02
+
+
 def test_bad_inputs_give_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert train_mod.main(_train_argv(tmp_path, task="D3Grasp-Nope-v0")) == 2
     err = capsys.readouterr().err

@@ -37,6 +37,9 @@ _BASE_CFG: dict[str, Any] = {
     # physics. Worlds de-synchronise anyway through early terminations.
     "init_at_random_ep_len": False,
     "obs_groups": {"actor": ["policy"], "critic": ["policy", "privileged"]},
+    # Scale of the actor's action-mean output layer at initialisation (None: rsl-rl's own): 0.01
+    # starts the residual policy at the rule-based controller (d3grasp.train.runner.scale_actor_output).
+    "actor_output_init_scale": 0.01,
     "actor": {
         "class_name": "RNNModel",
         "rnn_type": "lstm",
@@ -47,8 +50,9 @@ _BASE_CFG: dict[str, Any] = {
         "obs_normalization": True,
         "distribution_cfg": {
             "class_name": "GaussianDistribution",
-            # x residual_scale 0.4 rad: 0.1 rad of exploration around the rule (0.5 broke most grasps)
-            "init_std": 0.25,
+            # x residual_scale 0.4 rad: 0.12 rad per step, ~0.04 rad after the residual filter (0.5 unfiltered
+            # broke most grasps)
+            "init_std": 0.3,
             "std_type": "scalar",
         },
     },

@@ -212,6 +212,25 @@ class _StopFlag:
                 signal.signal(sig, handler)
 
 
+def scale_actor_output(actor: torch.nn.Module, scale: float, num_actions: int) -> None:
+    """Multiply the action-mean rows of the actor's last linear layer by ``scale`` and zero their bias.
+
+    With a residual action space the zero action is the rule-based controller; a freshly initialised
+    network instead outputs an O(0.3) function of its inputs that jitters from step to step, i.e. the
+    baseline plus noise the grasp cannot stand. Scaling the output layer (0.01, the usual choice for
+    policy heads) starts the deterministic policy at the baseline; training grows the residual. Rows
+    beyond ``num_actions`` (a state-dependent std) are left alone. Applied to fresh runs; a resumed run
+    loads its weights over it.
+    """
+    linears = [m for m in actor.modules() if isinstance(m, torch.nn.Linear)]
+    if not linears:
+        raise ValueError("actor has no linear layer to scale")
+    last = linears[-1]
+    with torch.no_grad():
+        last.weight[:num_actions] *= scale
+        last.bias[:num_actions] = 0.0
+
+
 class D3GraspRunner(OnPolicyRunner):
     """rsl-rl ``OnPolicyRunner`` with CPU (gloo) multi-process training, atomic checkpoints that
     know their task, a clean stop on SIGINT/SIGTERM, and grasp-outcome logging (module docstring)."""
@@ -233,6 +252,9 @@ class D3GraspRunner(OnPolicyRunner):
         self.episode_stats = EpisodeStats()
         self.stop_flag = _StopFlag()
         self.logger._store_code_state = self._safe_store_code_state  # type: ignore[method-assign]
+        scale = train_cfg.get("actor_output_init_scale")
+        if scale is not None:
+            scale_actor_output(self.alg.actor, float(scale), int(env.num_actions))
 
     # ----------------------------------------------------------------- distributed
     def _configure_multi_gpu(self) -> None:

@@ -140,6 +140,8 @@ class GraspEnv:
 
         if cfg.action_mode not in ACTION_MODES:
             raise ValueError(f"unknown action_mode '{cfg.action_mode}'; known: {list(ACTION_MODES)}")
+        if not 0.0 < cfg.residual_smoothing <= 1.0:
+            raise ValueError(f"residual_smoothing must be in (0, 1], got {cfg.residual_smoothing}")
         if cfg.perception not in PERCEPTION_MODES:
             raise ValueError(f"unknown perception '{cfg.perception}'; known: {list(PERCEPTION_MODES)}")
         self._load_objects()
@@ -405,6 +407,7 @@ class GraspEnv:
         self.actions = torch.zeros(W, NUM_FINGER_JOINTS, dtype=f32, device=tdev)
         self.action_hist = torch.zeros(W, H, NUM_FINGER_JOINTS, dtype=f32, device=tdev)
         self.finger_target = torch.zeros(W, NUM_FINGER_JOINTS, dtype=f32, device=tdev)
+        self.residual = torch.zeros(W, NUM_FINGER_JOINTS, dtype=f32, device=tdev)  # filtered, [-1, 1]
         self.latency = torch.zeros(W, dtype=torch.long, device=tdev)
         self.grasp_id = torch.zeros(W, dtype=torch.long, device=tdev)
         self.grasp_palm_pos = torch.zeros(W, 3, dtype=f32, device=tdev)
@@ -699,6 +702,7 @@ class GraspEnv:
         self.actions[env_ids] = self.open_action
         self.action_hist[env_ids] = self.open_action
         self.finger_target[env_ids] = self.open_pose
+        self.residual[env_ids] = 0.0
         if self.residual_base is not None:
             self.residual_base.reset(env_ids)
         self.t_object_force[env_ids] = 0.0
@@ -799,7 +803,9 @@ class GraspEnv:
         applied = hist[torch.arange(self.num_envs), lat]
         if self.residual_base is not None:
             self.residual_base.act()  # advances the rule on the current touch readings
-            desired = self.residual_base.target + cfg.residual_scale * applied
+            b = cfg.residual_smoothing
+            self.residual = b * applied + (1.0 - b) * self.residual
+            desired = self.residual_base.target + cfg.residual_scale * self.residual
             desired = torch.minimum(torch.maximum(desired, self.lower), self.upper)
         else:
             desired = self.lower + 0.5 * (applied + 1.0) * (self.upper - self.lower)
@@ -1025,6 +1031,7 @@ class GraspEnv:
         if self.residual_base is not None:
             # The rule's current targets: what the residual is added to.
             parts.append(self.normalize_joints(self.residual_base.target))
+            parts.append(self.residual)  # the filtered residual now applied
         policy = torch.cat(parts, dim=-1)
 
         obj_pos, obj_quat, obj_lin, obj_ang = self._object_state()
