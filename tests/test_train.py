@@ -135,6 +135,18 @@ class StandInEnv:
         self.closed = True
 
 
+BUILT_ENVS: list[tuple[int, tuple[str, ...]]] = []  # (seed, object ids) of each make_recording_env call
+
+
+def make_recording_env(task: str, num_envs: int | None = None, device: str = "cpu", seed: int = 0, **kw: Any):
+    """The real factory, recording which objects each build put in its worlds."""
+    from d3grasp.envs import make_env
+
+    env = make_env(task, num_envs=num_envs, device=device, seed=seed, **kw)
+    BUILT_ENVS.append((seed, tuple(e.id for e in env.world_entries)))
+    return env
+
+
 def make_standin_env(
     task: str, num_envs: int | None = None, device: str = "cpu", seed: int = 0
 ) -> StandInEnv:
@@ -430,6 +442,19 @@ def test_fresh_policy_starts_at_the_zero_residual(scale: float | None) -> None:
         assert largest > 0.05
     else:
         assert largest < 0.02
+
+
+@pytest.mark.skipif(not REAL_ENV, reason="needs the grasp environment")
+def test_objects_are_resampled_during_training(tmp_path: Path) -> None:
+    """--resample_objects_every 1: each iteration after the first runs on a fresh draw of objects."""
+    BUILT_ENVS.clear()
+    argv = _train_argv(tmp_path, extra=("--resample_objects_every", "1", "--seed", "5"))
+    argv[argv.index("--env_factory") + 1] = "test_train:make_recording_env"
+    assert train_mod.main(argv) == 0
+    # The first build and one rebuild after iteration 1 (none after the last iteration).
+    assert [seed for seed, _ in BUILT_ENVS] == [5, 1005]
+    assert BUILT_ENVS[0][1] != BUILT_ENVS[1][1]
+    assert read_checkpoint(_run_dirs(tmp_path)[-1] / "model_2.pt")["iter"] == 2
 
 
 def test_bad_inputs_give_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

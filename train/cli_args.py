@@ -106,6 +106,12 @@ def make_train_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--save_interval", type=positive_int, default=None, help="checkpoint every N iterations")
     p.add_argument(
+        "--resample_objects_every",
+        type=int,
+        default=None,
+        help="rebuild the worlds with other objects every N iterations (0: never; default: the task's)",
+    )
+    p.add_argument(
         "--experiment_name", default=None, help="log folder under the log root (default: from task)"
     )
     p.add_argument("--run_name", default="", help="suffix of the run folder <timestamp>_<run_name>")

@@ -26,7 +26,7 @@ import re
 import signal
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -242,8 +242,11 @@ class D3GraspRunner(OnPolicyRunner):
         log_dir: str | os.PathLike[str] | None = None,
         device: str = "cpu",
         task_name: str | None = None,
+        env_builder: Callable[[int], Any] | None = None,
     ) -> None:
         self.task_name = task_name if task_name is not None else train_cfg.get("task")
+        # draw index -> a fresh environment with other objects (``resample_objects_every``)
+        self.env_builder = env_builder
         super().__init__(env, train_cfg, None if log_dir is None else str(log_dir), device)
         self.log_dir = None if log_dir is None else str(log_dir)
         if self.gpu_global_rank != 0:
@@ -362,6 +365,10 @@ class D3GraspRunner(OnPolicyRunner):
                     saved_at = done
                 if self._agree_to_stop(stop.requested):
                     break
+                every = int(self.cfg.get("resample_objects_every") or 0)
+                if every and self.env_builder is not None and done % every == 0 and done < total_it:
+                    env = self._resample_objects(done // every)
+                    obs = env.get_observations().to(self.device)
 
         if self.log_dir is not None:
             if saved_at != self.current_learning_iteration:
@@ -373,6 +380,30 @@ class D3GraspRunner(OnPolicyRunner):
             self.logger.stop_logging_writer()
             if self.logger.writer is not None and hasattr(self.logger.writer, "close"):
                 self.logger.writer.close()
+
+    def _resample_objects(self, draw: int) -> Any:
+        """Replace the environment by ``env_builder(draw)``: the same task and world count holding
+        other objects (a Newton model cannot swap an object's geometry in place).
+
+        Measured reason: a run whose 2 x 20 worlds keep their 40 objects for hundreds of iterations
+        fits those objects; each new draw dropped the training return from ~85 to ~25. Episodes in
+        progress are abandoned: recurrent states and the logger's running episode sums restart.
+        """
+        old = self.env
+        close = getattr(old, "close", None)
+        if close is not None:
+            close()
+        env = self.env_builder(draw)  # type: ignore[misc]
+        if env.num_envs != old.num_envs or env.num_actions != old.num_actions:
+            raise ValueError("env_builder must keep the number of worlds and actions")
+        self.env = env
+        self.alg.actor.reset()
+        self.alg.critic.reset()
+        for name in ("cur_reward_sum", "cur_episode_length"):
+            buf = getattr(self.logger, name, None)
+            if isinstance(buf, torch.Tensor):
+                buf.zero_()
+        return env
 
     def _agree_to_stop(self, local: bool) -> bool:
         """All ranks stop together (a rank leaving early would hang the others' all-reduce)."""

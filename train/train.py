@@ -150,7 +150,13 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
     torch.set_num_threads(resolve_torch_threads(args.torch_threads))
 
     overrides: dict[str, Any] = {"logger": args.logger, "run_name": args.run_name}
-    for key in ("max_iterations", "num_steps_per_env", "save_interval", "experiment_name"):
+    for key in (
+        "max_iterations",
+        "num_steps_per_env",
+        "save_interval",
+        "experiment_name",
+        "resample_objects_every",
+    ):
         if getattr(args, key, None) is not None:
             overrides[key] = getattr(args, key)
     if args.logger == "wandb":
@@ -172,6 +178,7 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
     make = load_env_factory(args.env_factory)
     env_overrides = dict(getattr(args, "overrides", None) or ())
     env = make(args.task, num_envs=args.num_envs, device=device, seed=seed, **env_overrides)
+    runner: D3GraspRunner | None = None
     try:
         alg = train_cfg["algorithm"]
         alg["num_mini_batches"] = fit_mini_batches(alg["num_mini_batches"], env.num_envs)
@@ -188,7 +195,15 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
             log_dir.mkdir(parents=True)
             print(f"[d3grasp] logging to {log_dir}")
 
-        runner = D3GraspRunner(env, train_cfg, log_dir=log_dir, device=device, task_name=args.task)
+        def build_env(draw: int) -> Any:
+            # Draw k of the objects: the same worlds seeded apart, so each draw picks other objects.
+            return make(
+                args.task, num_envs=args.num_envs, device=device, seed=seed + 1000 * draw, **env_overrides
+            )
+
+        runner = D3GraspRunner(
+            env, train_cfg, log_dir=log_dir, device=device, task_name=args.task, env_builder=build_env
+        )
         if resume_path is not None:
             runner.load(str(resume_path))
             print(f"[d3grasp] resumed from {resume_path} at iteration {runner.current_learning_iteration}")
@@ -201,7 +216,8 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
         )
         return runner
     finally:
-        close = getattr(env, "close", None)
+        # The runner may have replaced the env by a new draw of objects (resample_objects_every).
+        close = getattr(runner.env if runner is not None else env, "close", None)
         if close is not None:
             close()
         if torch.distributed.is_available() and torch.distributed.is_initialized():
