@@ -196,7 +196,8 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
             print(f"[d3grasp] logging to {log_dir}")
 
         def build_env(draw: int) -> Any:
-            # Draw k of the objects: the same worlds seeded apart, so each draw picks other objects.
+            # Draw k (= completed iterations // resample_objects_every) of the objects: the same worlds
+            # seeded apart, so each draw picks other objects; the first segment uses the base seed.
             return make(
                 args.task, num_envs=args.num_envs, device=device, seed=seed + 1000 * draw, **env_overrides
             )
