@@ -30,9 +30,10 @@ _BASE_CFG: dict[str, Any] = {
     "max_iterations": 1500,
     "save_interval": 50,
     # Rebuild the worlds with other objects every N iterations (0: never). A Newton model holds one
-    # object per world for its lifetime, so 2 ranks x 20 worlds see 40 objects per draw; a run that
-    # kept its draw for hundreds of iterations fitted those objects (every new draw dropped the
-    # training return from ~85 to ~25). A rebuild costs ~10-20 s against ~7 min of 100 iterations.
+    # object per world for its lifetime, so 2 ranks x 20 worlds see 40 objects per draw; in a run that
+    # kept its draw for hundreds of iterations each new draw dropped the training return from ~85 to
+    # ~25 (redrawing every 50 iterations did not by itself raise the held-out success rate). A rebuild
+    # costs ~10-20 s against ~7 min of 100 iterations.
     "resample_objects_every": 100,
     "check_for_nan": True,
     "logger": "tensorboard",

@@ -177,7 +177,15 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
     seed_everything(seed)
     make = load_env_factory(args.env_factory)
     env_overrides = dict(getattr(args, "overrides", None) or ())
-    env = make(args.task, num_envs=args.num_envs, device=device, seed=seed, **env_overrides)
+
+    def build_env(draw: int) -> Any:
+        # Draw k (= completed iterations // resample_objects_every) of the objects: the same worlds
+        # seeded apart, so each draw picks other objects; the first segment uses the base seed.
+        return make(
+            args.task, num_envs=args.num_envs, device=device, seed=seed + 1000 * draw, **env_overrides
+        )
+
+    env = build_env(0)
     runner: D3GraspRunner | None = None
     try:
         alg = train_cfg["algorithm"]
@@ -194,13 +202,6 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
                 suffix += 1
             log_dir.mkdir(parents=True)
             print(f"[d3grasp] logging to {log_dir}")
-
-        def build_env(draw: int) -> Any:
-            # Draw k (= completed iterations // resample_objects_every) of the objects: the same worlds
-            # seeded apart, so each draw picks other objects; the first segment uses the base seed.
-            return make(
-                args.task, num_envs=args.num_envs, device=device, seed=seed + 1000 * draw, **env_overrides
-            )
 
         runner = D3GraspRunner(
             env, train_cfg, log_dir=log_dir, device=device, task_name=args.task, env_builder=build_env
