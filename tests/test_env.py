@@ -116,7 +116,8 @@ def test_open_hand_never_counts_as_a_lift():
 
 
 def test_zero_residual_reproduces_the_rule_based_controller():
-    """Residual mode with zero actions drives the joints like the baseline in absolute mode, and lifts.
+    """Residual and synergy modes with zero actions drive the joints like the baseline in absolute mode,
+    and lift.
 
     Compared up to the first touch (step 40 on this box): from there on float round-off in the
     targets (the absolute path normalises and de-normalises them) is enough for contact onsets to
@@ -124,21 +125,22 @@ def test_zero_residual_reproduces_the_rule_based_controller():
     """
     closing_steps = 40
     targets = []
-    for mode in ("absolute", "residual"):
+    for mode in ("absolute", "residual", "synergy"):
         env = _env((RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, action_mode=mode)
         ctl = RuleBasedController(env)
         obs = env.get_observations()
         trace = []
         for _ in range(closing_steps):
-            act = ctl.act(obs) if mode == "absolute" else torch.zeros(1, 16)
+            act = ctl.act(obs) if mode == "absolute" else torch.zeros(1, env.num_actions)
             obs, *_ = env.step(act)
             trace.append(env.finger_target.clone())
         targets.append(torch.stack(trace))
     assert (targets[0][-1] - targets[0][0]).abs().max() > 0.1  # the rule is closing the hand
     torch.testing.assert_close(targets[1], targets[0], atol=1e-5, rtol=0)
+    torch.testing.assert_close(targets[2], targets[0], atol=1e-5, rtol=0)
     episodes = []
-    while not episodes:  # the residual env runs on to the end of its episode
-        _, _, _, extras = env.step(torch.zeros(1, 16))
+    while not episodes:  # the synergy env runs on to the end of its episode
+        _, _, _, extras = env.step(torch.zeros(1, 4))
         episodes += extras.get("episodes", [])
     assert episodes[0]["s_lift"], episodes[0]
 
@@ -161,6 +163,26 @@ def test_residual_is_low_pass_filtered():
         torch.testing.assert_close(env.finger_target, target, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="residual_smoothing"):
         _env((RIGID_MEDIUM_BOX,), residual_smoothing=0.0)
+
+
+def test_synergy_action_squeezes_each_fingers_flexion_joints():
+    """Synergy mode: 4 actions, action f offsets finger f's three flexion joints (4f+1..4f+3) equally and
+    no abduction joint; the offset is filtered like the residual mode's."""
+    b = 0.25
+    env = _env(
+        (RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, action_mode="synergy", residual_smoothing=b
+    )
+    assert env.num_actions == 4
+    action = torch.tensor([[0.5, -1.0, 0.2, 1.0]])
+    expected = torch.zeros(1, 16)
+    for f in range(4):
+        expected[0, 4 * f + 1 : 4 * f + 4] = action[0, f]
+    for k in range(1, 6):
+        env.step(action)
+        torch.testing.assert_close(env.residual, expected * (1.0 - (1.0 - b) ** k), atol=1e-6, rtol=0)
+    assert torch.all(env.residual[0, ::4] == 0.0)
+    with pytest.raises(ValueError, match="shape"):
+        env.step(torch.zeros(1, 16))
 
 
 def test_disturbance_force_pushes_a_free_object():

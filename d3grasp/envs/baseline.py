@@ -77,7 +77,7 @@ class RuleBasedController:
         env, cfg = self.env, self.cfg
         if env.residual_base is not None and env.residual_base is not self:
             # A residual-mode env already runs this rule inside: the baseline is the zero residual.
-            return torch.zeros(env.num_envs, NUM_FINGER_JOINTS, device=env.torch_device)
+            return torch.zeros(env.num_envs, env.num_actions, device=env.torch_device)
         t = env.episode_length_buf
         fresh = t == 0
         if fresh.any():

@@ -45,6 +45,7 @@ from d3grasp.kernels import tactile as tac_k
 from d3grasp.paths import default_manifest
 
 NUM_FINGER_JOINTS = 16
+NUM_FINGERS = 4  # joints 4f..4f+3 are finger f's: abduction (4f) then three flexion joints
 NUM_PADS = 11
 NUM_LINKS = len(hand_def.LINK_NAMES)
 PHASES = ("approach", "grasp", "lift", "hold", "disturb", "release")
@@ -110,7 +111,7 @@ class GraspEnv:
         self.num_envs = int(cfg.num_envs)
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
-        self.num_actions = NUM_FINGER_JOINTS
+        self.num_actions = NUM_FINGERS if cfg.action_mode == "synergy" else NUM_FINGER_JOINTS
         self.device = cfg.device
         self.wp_device = wp.get_device("cpu" if cfg.device == "cpu" else cfg.device)
         self.torch_device = torch.device(cfg.device)
@@ -159,7 +160,7 @@ class GraspEnv:
         # Residual mode: the rule-based controller runs inside the env and the policy's actions are
         # offsets on its joint targets (imported here: baseline.py imports this module).
         self.residual_base = None
-        if cfg.action_mode == "residual":
+        if cfg.action_mode in ("residual", "synergy"):
             from d3grasp.envs.baseline import RuleBasedController
 
             self.residual_base = RuleBasedController(self)
@@ -404,8 +405,17 @@ class GraspEnv:
 
         H = self.cfg.obs.action_history
         self.episode_length_buf = torch.zeros(W, dtype=torch.long, device=tdev)
-        self.actions = torch.zeros(W, NUM_FINGER_JOINTS, dtype=f32, device=tdev)
-        self.action_hist = torch.zeros(W, H, NUM_FINGER_JOINTS, dtype=f32, device=tdev)
+        A = self.num_actions
+        self.actions = torch.zeros(W, A, dtype=f32, device=tdev)
+        self.action_hist = torch.zeros(W, H, A, dtype=f32, device=tdev)
+        # Synergy mode: (16, 4) map from the per-finger squeeze actions to joint residuals.
+        self.synergy = torch.zeros(NUM_FINGER_JOINTS, NUM_FINGERS, dtype=f32, device=tdev)
+        for f in range(NUM_FINGERS):
+            self.synergy[4 * f + 1 : 4 * f + 4, f] = 1.0
+        # What an action history starts from: the open hand (absolute) or the zero residual (the rule).
+        self.reset_action = (
+            self.open_action if self.cfg.action_mode == "absolute" else torch.zeros(A, device=tdev)
+        )
         self.finger_target = torch.zeros(W, NUM_FINGER_JOINTS, dtype=f32, device=tdev)
         self.residual = torch.zeros(W, NUM_FINGER_JOINTS, dtype=f32, device=tdev)  # filtered, [-1, 1]
         self.latency = torch.zeros(W, dtype=torch.long, device=tdev)
@@ -699,8 +709,8 @@ class GraspEnv:
 
         env_ids = env_ids.to(self.torch_device)
         self.episode_length_buf[env_ids] = 0
-        self.actions[env_ids] = self.open_action
-        self.action_hist[env_ids] = self.open_action
+        self.actions[env_ids] = self.reset_action
+        self.action_hist[env_ids] = self.reset_action
         self.finger_target[env_ids] = self.open_pose
         self.residual[env_ids] = 0.0
         if self.residual_base is not None:
@@ -803,6 +813,8 @@ class GraspEnv:
         applied = hist[torch.arange(self.num_envs), lat]
         if self.residual_base is not None:
             self.residual_base.act()  # advances the rule on the current touch readings
+            if cfg.action_mode == "synergy":
+                applied = applied @ self.synergy.T
             b = cfg.residual_smoothing
             self.residual = b * applied + (1.0 - b) * self.residual
             desired = self.residual_base.target + cfg.residual_scale * self.residual
