@@ -185,6 +185,23 @@ def test_synergy_action_squeezes_each_fingers_flexion_joints():
         env.step(torch.zeros(1, 16))
 
 
+def test_residual_integrator_holds_and_saturates():
+    """residual_rate > 0: the residual is the clipped running sum of rate * action (a zero action holds it)."""
+    rate = 0.3
+    env = _env(
+        (RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, action_mode="synergy", residual_rate=rate
+    )
+    expected = np.zeros(4)
+    for action in ([1.0, -0.5, 0.2, 0.0], [0.0] * 4) + ([1.0, -1.0, 0.5, -0.1],) * 3:
+        env.step(torch.tensor([action]))
+        expected = np.clip(expected + rate * np.array(action), -1.0, 1.0)
+        flexion = env.residual[0].reshape(4, 4)[:, 1:].numpy()
+        np.testing.assert_allclose(flexion, np.repeat(expected[:, None], 3, axis=1), atol=1e-6)
+    assert expected[0] == 1.0 and expected[1] == -1.0  # saturated at the clip
+    with pytest.raises(ValueError, match="residual_rate"):
+        _env((RIGID_MEDIUM_BOX,), residual_rate=-0.1)
+
+
 def test_disturbance_force_pushes_a_free_object():
     # The hand waits in its pre-grasp pose; push the free box along +x with 2.5 N for 0.5 s.
     env = _env((RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, sim__use_graph=False)

@@ -148,6 +148,12 @@ class GraspEnvConfig:
     # a sustained offset (a firmer squeeze) passes in full within ~10 steps. The rule's own target is
     # not filtered: the zero residual stays exactly the baseline.
     residual_smoothing: float = 0.2
+    # Residual as an integrator instead (> 0): r = clip(r + rate * action, -1, 1), a zero action holds the
+    # residual. PPO explores with independent per-step noise, which the low-pass averages away: over a
+    # 60-step lift the sustained offset it explores has a std of ~0.3 / sqrt(60) of the action noise,
+    # so "squeeze harder through the lift" is barely ever tried. Integrated, the same noise is a random
+    # walk (std rate * 0.3 * sqrt(n) after n steps): smooth, sustained offsets are what gets explored.
+    residual_rate: float = 0.0
     action_smoothing: float = 0.5  # target = a * new + (1 - a) * previous target
     privileged_obs: bool = True  # asymmetric critic input group
     tactile_obs: bool = True  # False for the proprioception-only ablation

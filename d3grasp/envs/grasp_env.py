@@ -143,6 +143,8 @@ class GraspEnv:
             raise ValueError(f"unknown action_mode '{cfg.action_mode}'; known: {list(ACTION_MODES)}")
         if not 0.0 < cfg.residual_smoothing <= 1.0:
             raise ValueError(f"residual_smoothing must be in (0, 1], got {cfg.residual_smoothing}")
+        if not 0.0 <= cfg.residual_rate <= 1.0:
+            raise ValueError(f"residual_rate must be in [0, 1], got {cfg.residual_rate}")
         if cfg.perception not in PERCEPTION_MODES:
             raise ValueError(f"unknown perception '{cfg.perception}'; known: {list(PERCEPTION_MODES)}")
         self._load_objects()
@@ -815,8 +817,11 @@ class GraspEnv:
             self.residual_base.act()  # advances the rule on the current touch readings
             if cfg.action_mode == "synergy":
                 applied = applied @ self.synergy.T
-            b = cfg.residual_smoothing
-            self.residual = b * applied + (1.0 - b) * self.residual
+            if cfg.residual_rate > 0.0:
+                self.residual = (self.residual + cfg.residual_rate * applied).clamp(-1.0, 1.0)
+            else:
+                b = cfg.residual_smoothing
+                self.residual = b * applied + (1.0 - b) * self.residual
             desired = self.residual_base.target + cfg.residual_scale * self.residual
             desired = torch.minimum(torch.maximum(desired, self.lower), self.upper)
         else:
