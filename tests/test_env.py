@@ -38,19 +38,20 @@ def test_observation_groups_shapes_and_dtypes(mixed_env):
     k = env.cfg.obs.action_history
     # tactile 33 + contacts 11 + q 16 + qd 16 + history 16k + step 3 + grasp 3 + phase 6 + root cmd 7
     # touch 33 + 11, q, qd, k actions, clock 3, grasp type 3, phase, root command 7, the rule's targets 16
-    # and the filtered residual 16 (residual mode)
-    assert obs["policy"].shape == (2, 33 + 11 + 16 + 16 + 16 * k + 3 + 3 + len(PHASES) + 7 + 16 + 16)
+    # and the residual now applied 16 (residual and synergy modes; the default has 4 synergy actions)
+    a = env.num_actions
+    assert obs["policy"].shape == (2, 33 + 11 + 16 + 16 + a * k + 3 + 3 + len(PHASES) + 7 + 16 + 16)
     # object pos 3, quat 4, lin 3, ang 3, 17 link distances, eps, sigma, mass, friction, log E, 33 forces
     assert obs["privileged"].shape == (2, 3 + 4 + 3 + 3 + 17 + 5 + 33)
     assert obs["policy"].dtype == torch.float32 and obs["privileged"].dtype == torch.float32
-    assert env.num_actions == 16 and env.episode_length_buf.shape == (2,)
+    assert env.num_actions == 4 and env.episode_length_buf.shape == (2,)
 
 
 def test_random_actions_stay_finite(mixed_env):
     env = mixed_env
     gen = torch.Generator().manual_seed(0)
     for _ in range(300):
-        obs, rew, done, extras = env.step(torch.rand(2, 16, generator=gen) * 2 - 1)
+        obs, rew, done, extras = env.step(torch.rand(2, env.num_actions, generator=gen) * 2 - 1)
         assert torch.isfinite(obs["policy"]).all() and torch.isfinite(obs["privileged"]).all()
         assert torch.isfinite(rew).all()
         assert set(extras) >= {"time_outs", "log"}
@@ -65,7 +66,7 @@ def test_same_seed_same_rollout():
         gen = torch.Generator().manual_seed(5)
         out = []
         for _ in range(40):
-            obs, *_ = env.step(torch.rand(1, 16, generator=gen) * 2 - 1)
+            obs, *_ = env.step(torch.rand(1, env.num_actions, generator=gen) * 2 - 1)
             out.append(obs["privileged"].clone())
         return torch.stack(out)
 
@@ -78,7 +79,7 @@ def test_reset_restores_soft_body_to_rest(mixed_env):
     soft_world = 1
     # Squeeze for a while, then reset only the soft world.
     for _ in range(80):
-        env.step(torch.ones(2, 16))
+        env.step(torch.ones(2, env.num_actions))
     env._reset(torch.tensor([soft_world]))
     strain_k.compute_strain(env.strain_layout, env.state_0.particle_q, env.strain_buf)
     eps = env.strain_buf.object_eps.numpy()
@@ -149,7 +150,14 @@ def test_residual_is_low_pass_filtered():
     """A constant residual action a reaches the joints as the geometric series a (1 - (1 - b)^k), on top
     of the rule's target and through the outer target smoothing (recomputed here step by step)."""
     b = 0.25
-    env = _env((RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, residual_smoothing=b)
+    env = _env(
+        (RIGID_MEDIUM_BOX,),
+        seed=0,
+        randomization__enabled=False,
+        action_mode="residual",
+        residual_rate=0.0,
+        residual_smoothing=b,
+    )
     action = torch.linspace(-1.0, 1.0, 16)[None]
     rest = env.residual_base.target.clone()  # the rule holds its rest pose through the approach
     a_s, target = env.cfg.action_smoothing, env.finger_target.clone()
@@ -170,7 +178,12 @@ def test_synergy_action_squeezes_each_fingers_flexion_joints():
     no abduction joint; the offset is filtered like the residual mode's."""
     b = 0.25
     env = _env(
-        (RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, action_mode="synergy", residual_smoothing=b
+        (RIGID_MEDIUM_BOX,),
+        seed=0,
+        randomization__enabled=False,
+        action_mode="synergy",
+        residual_rate=0.0,
+        residual_smoothing=b,
     )
     assert env.num_actions == 4
     action = torch.tensor([[0.5, -1.0, 0.2, 1.0]])

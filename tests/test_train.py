@@ -45,7 +45,12 @@ TESTS_DIR = Path(__file__).resolve().parent
 REAL_ENV = importlib.util.find_spec("d3grasp.envs.grasp_env") is not None
 STANDIN_FACTORY = "test_train:make_standin_env"
 ENV_FACTORY = "d3grasp.envs:make_env" if REAL_ENV else STANDIN_FACTORY
-NUM_ACTIONS = 16
+NUM_ACTIONS = 16  # the stand-in env's
+
+
+def _task_actions(task: str) -> int:
+    """Actions of the real task: 4 per-finger squeezes in synergy mode, else 16 joint targets."""
+    return 4 if get_task(task).make_cfg().action_mode == "synergy" else 16
 
 
 # --------------------------------------------------------------------------- stand-in environment
@@ -325,7 +330,9 @@ def test_train_resume_play_export(tmp_path: Path, capsys: pytest.CaptureFixture[
     data = read_checkpoint(ckpt)
     assert data["iter"] == 2
     infos = data["infos"]
-    assert infos["task"] == DEFAULT_TASK and infos["num_actions"] == NUM_ACTIONS
+    assert infos["task"] == DEFAULT_TASK and infos["num_actions"] == (
+        _task_actions(DEFAULT_TASK) if REAL_ENV else NUM_ACTIONS
+    )
     assert set(infos["obs_sizes"]) >= {"policy", "privileged"}
     assert (run1 / "params" / "agent.json").is_file() and (run1 / "params" / "env.json").is_file()
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator

@@ -240,7 +240,7 @@ def test_env_camera_perception_records_localisation_error():
         assert rec["loc_error"] < 2.0 * CENTRE_BOUND, env.world_entries[w].id
     episodes = []
     for _ in range(env.max_episode_length):
-        _, _, _, extras = env.step(torch.zeros(2, 16))
+        _, _, _, extras = env.step(torch.zeros(2, env.num_actions))
         episodes += extras.get("episodes", [])
         if len(episodes) >= 2:
             break

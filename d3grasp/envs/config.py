@@ -139,8 +139,8 @@ class GraspEnvConfig:
     grasp_types: tuple[str, ...] = GRASP_TYPES
     grasp_mode: str = "rule"  # rule: chosen from object size and shape; sample: uniform per episode
     perception: str = "oracle"  # see PERCEPTION_MODES
-    action_mode: str = "residual"  # see ACTION_MODES
-    residual_scale: float = 0.4  # rad of joint-target offset at |action| = 1 (residual mode)
+    action_mode: str = "synergy"  # see ACTION_MODES
+    residual_scale: float = 0.4  # rad of joint-target offset at a residual of 1 (residual, synergy modes)
     # Residual mode: the offset applied is a low-pass of the actions, r = b * action + (1 - b) * r
     # (1 = off). Grasp outcomes hinge on contact onsets that a few hundredths of a radian of per-step
     # jitter move (0.04 rad of per-step target noise halved the baseline's lift rate), so step-to-step
@@ -153,7 +153,7 @@ class GraspEnvConfig:
     # 60-step lift the sustained offset it explores has a std of ~0.3 / sqrt(60) of the action noise,
     # so "squeeze harder through the lift" is barely ever tried. Integrated, the same noise is a random
     # walk (std rate * 0.3 * sqrt(n) after n steps): smooth, sustained offsets are what gets explored.
-    residual_rate: float = 0.0
+    residual_rate: float = 0.08  # 0: the low-pass above; 0.08 reaches a full squeeze in 13 steps
     action_smoothing: float = 0.5  # target = a * new + (1 - a) * previous target
     privileged_obs: bool = True  # asymmetric critic input group
     tactile_obs: bool = True  # False for the proprioception-only ablation
