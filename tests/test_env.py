@@ -199,7 +199,7 @@ def test_synergy_action_squeezes_each_fingers_flexion_joints():
 
 
 def test_residual_integrator_holds_and_saturates():
-    """residual_rate > 0: the residual is the clipped running sum of rate * action (a zero action holds it)."""
+    """residual_rate > 0: the residual is the clipped running sum of rate * action (zero holds it)."""
     rate = 0.3
     env = _env(
         (RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, action_mode="synergy", residual_rate=rate

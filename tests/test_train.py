@@ -574,3 +574,40 @@ def test_torchrun_two_cpu_ranks_hold_identical_weights(tmp_path: Path) -> None:
     (run,) = _run_dirs(tmp_path)  # only rank 0 writes a run folder
     data = read_checkpoint(run / "model_2.pt")
     assert torch.equal(data["actor_state_dict"]["mlp.0.weight"], r0["actor"]["mlp.0.weight"])
+
+
+# --------------------------------------------------------------------------- the shipped policy
+@pytest.mark.skipif(not REAL_ENV, reason="needs the grasp environment")
+def test_shipped_policy_fits_its_task_and_its_exports_agree() -> None:
+    """The package's trained policy loads on its task (observation and action sizes checked), is small,
+    and its shipped TorchScript and ONNX exports act like a NumPy transcription of the checkpoint on
+    real observations, LSTM state carried (stale exports would differ)."""
+    import onnxruntime as ort
+    from d3grasp.train.play import load_runner
+
+    from d3grasp.envs import make_env
+    from d3grasp.policies import shipped_checkpoint
+
+    ckpt = shipped_checkpoint(DEFAULT_TASK)
+    assert ckpt.stat().st_size < 10e6
+    data = read_checkpoint(ckpt)
+    assert data["infos"]["task"] == DEFAULT_TASK
+    env = make_env(DEFAULT_TASK, num_envs=1, seed=3, eval_mode=True)
+    load_runner(env, DEFAULT_TASK, ckpt, "cpu")  # CheckpointError if the sizes no longer match
+    ref = NumpyLstmPolicy(data["actor_state_dict"])
+    jit = torch.jit.load(str(ckpt.parent / "exported" / "policy.pt"))
+    jit.reset()
+    sess = ort.InferenceSession(
+        str(ckpt.parent / "exported" / "policy.onnx"), providers=["CPUExecutionProvider"]
+    )
+    h, c = ref.zero_state(1)
+    hx, cx = np.zeros((1, 1, ref.hidden), np.float32), np.zeros((1, 1, ref.hidden), np.float32)
+    obs = env.get_observations()
+    for _ in range(env.phase_start["lift"] + 5):  # into the lift, where the policy squeezes
+        x = obs["policy"].numpy().astype(np.float32)
+        want, h, c = ref.step(x.astype(np.float64), h, c)
+        got_onnx, hx, cx = sess.run(None, {"obs": x, "h_in": hx, "c_in": cx})
+        np.testing.assert_allclose(jit(torch.from_numpy(x)).detach().numpy(), want, atol=2e-5)
+        np.testing.assert_allclose(got_onnx, want, atol=2e-5)
+        obs, *_ = env.step(torch.from_numpy(want.astype(np.float32)))
+    assert np.abs(want).max() > 0.05  # a trained policy, not the zero residual of a fresh one

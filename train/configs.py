@@ -56,8 +56,9 @@ _BASE_CFG: dict[str, Any] = {
         "obs_normalization": True,
         "distribution_cfg": {
             "class_name": "GaussianDistribution",
-            # x residual_scale 0.4 rad: 0.12 rad per step, ~0.04 rad after the residual filter (0.5 unfiltered
-            # broke most grasps)
+            # Synergy residual integrating at rate 0.08: 0.024 of the squeeze range (~0.01 rad) per step, a
+            # random walk of ~0.3 (0.12 rad) by the end of the lift. (In the low-pass residual mode, 0.5
+            # broke most grasps.)
             "init_std": 0.3,
             "std_type": "scalar",
         },
