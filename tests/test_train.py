@@ -483,6 +483,10 @@ def test_bad_inputs_give_one_line_errors(tmp_path: Path, capsys: pytest.CaptureF
     assert play_main(["--checkpoint", "x.pt", "--video", "out.avi"]) == 2
     assert "--video must end in .gif or .mp4" in capsys.readouterr().err
 
+    with pytest.raises(SystemExit):  # argparse: usage line and the reason, exit code 2
+        train_mod.main(_train_argv(tmp_path, extra=("--resample_objects_every", "-1")))
+    assert "must be a non-negative integer, got -1" in capsys.readouterr().err
+
 
 def test_checkpoint_of_another_task_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Base (no touch, symmetric critic) has a smaller policy observation than Mixed."""

@@ -34,6 +34,14 @@ def positive_int(value: str) -> int:
     return n
 
 
+def non_negative_int(value: str) -> int:
+    """argparse type: an integer >= 0."""
+    n = int(value)
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be a non-negative integer, got {value}")
+    return n
+
+
 def _size(value: str) -> tuple[int, int]:
     w, sep, h = value.lower().partition("x")
     if not sep or not w.isdigit() or not h.isdigit() or int(w) < 8 or int(h) < 8:
@@ -107,7 +115,7 @@ def make_train_parser() -> argparse.ArgumentParser:
     p.add_argument("--save_interval", type=positive_int, default=None, help="checkpoint every N iterations")
     p.add_argument(
         "--resample_objects_every",
-        type=int,
+        type=non_negative_int,
         default=None,
         help="rebuild the worlds with other objects every N iterations (0: never; default: the task's)",
     )
