@@ -29,6 +29,7 @@ from d3grasp.train.export import ExportPaths, LatencyReport, export_policy, meas
 from d3grasp.train.runner import D3GraspRunner, EpisodeStats, read_checkpoint  # noqa: E402
 from d3grasp.train.train import DistInfo, load_env_factory, resolve_device, seed_everything  # noqa: E402
 
+from d3grasp.envs import close_env  # noqa: E402
 from d3grasp.envs.registry import get_task  # noqa: E402
 from d3grasp.policies import BASELINE, resolve_checkpoint  # noqa: E402
 from d3grasp.viz.rollout import PictureSettings, RolloutPictures  # noqa: E402
@@ -169,9 +170,7 @@ def play(
             for line in result.latency.lines():
                 log(line)
     finally:
-        close = getattr(env, "close", None)
-        if close is not None:
-            close()
+        close_env(env)
     return result
 
 

@@ -37,6 +37,8 @@ import torch  # noqa: E402
 from rsl_rl.runners import OnPolicyRunner  # noqa: E402
 from rsl_rl.utils import check_nan  # noqa: E402
 
+from d3grasp.envs import close_env  # noqa: E402
+
 __all__ = [
     "CheckpointError",
     "D3GraspRunner",
@@ -396,9 +398,7 @@ class D3GraspRunner(OnPolicyRunner):
         and the logger's running episode sums restart.
         """
         old = self.env
-        close = getattr(old, "close", None)
-        if close is not None:
-            close()
+        close_env(old)
         env = self.env_builder(draw)  # type: ignore[misc]
         if env.num_envs != old.num_envs or env.num_actions != old.num_actions:
             raise ValueError("env_builder must keep the number of worlds and actions")

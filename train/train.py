@@ -35,6 +35,7 @@ from d3grasp.train.cli_args import make_train_parser, resolve_torch_threads, run
 from d3grasp.train.configs import fit_mini_batches, make_train_cfg  # noqa: E402
 from d3grasp.train.runner import CheckpointError, D3GraspRunner, latest_checkpoint  # noqa: E402
 
+from d3grasp.envs import close_env  # noqa: E402
 from d3grasp.envs.registry import get_task  # noqa: E402
 
 __all__ = ["DistInfo", "load_env_factory", "main", "resolve_device", "resume_checkpoint", "run_training"]
@@ -219,9 +220,7 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
         return runner
     finally:
         # The runner may have replaced the env by a new draw of objects (resample_objects_every).
-        close = getattr(runner.env if runner is not None else env, "close", None)
-        if close is not None:
-            close()
+        close_env(runner.env if runner is not None else env)
         if torch.distributed.is_available() and torch.distributed.is_initialized():
             torch.distributed.destroy_process_group()
 

@@ -34,4 +34,12 @@ def make_env(
     return GraspEnv(cfg, task_name=task)
 
 
-__all__ = ["DEFAULT_TASK", "TASKS", "GraspEnvConfig", "get_task", "make_env"]
+def close_env(env: Any) -> None:
+    """Release an environment's resources; a VecEnv from a custom ``--env_factory`` need not have
+    ``close()``."""
+    close = getattr(env, "close", None)
+    if close is not None:
+        close()
+
+
+__all__ = ["DEFAULT_TASK", "TASKS", "GraspEnvConfig", "close_env", "get_task", "make_env"]

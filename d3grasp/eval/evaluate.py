@@ -30,6 +30,7 @@ from typing import Any
 import torch
 
 from d3grasp.authoring.manifest import AssetEntry, read_manifest
+from d3grasp.envs import close_env
 from d3grasp.envs.config import GRASP_TYPES
 from d3grasp.envs.registry import DEFAULT_TASK, TASKS, get_task
 from d3grasp.eval.metrics import (
@@ -360,9 +361,7 @@ def evaluate(
                     try:
                         eps = _run_batch(env, spec, settings, lambda: bar.update(1))
                     finally:
-                        close = getattr(env, "close", None)
-                        if close is not None:
-                            close()
+                        close_env(env)
                     for ep in eps:
                         runs[label].append({**ep, "repeat": r, "seed": settings.seed + r})
             # Object order, then repeat: independent of the batch layout's step order.
