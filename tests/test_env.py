@@ -21,6 +21,11 @@ def _env(ids: tuple[str, ...], **kw):
     return make_env("D3Grasp-DexHand13-Mixed-v0", num_envs=len(ids), objects={"ids": ids}, **kw)
 
 
+def _box_env(**kw):
+    """One world with the medium box, seed 0, no randomisation (the deterministic single-object case)."""
+    return _env((RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, **kw)
+
+
 @pytest.fixture(scope="module")
 def mixed_env():
     return _env((RIGID_MEDIUM_BOX, SOFT_SPONGE), seed=3)
@@ -97,7 +102,7 @@ def _run_baseline_episode(env) -> list[dict]:
 
 
 def test_baseline_lifts_a_medium_box_and_holds_it_under_disturbance():
-    env = _env((RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False)
+    env = _box_env()
     (ep,) = _run_baseline_episode(env)
     assert ep["object"] == RIGID_MEDIUM_BOX
     assert ep["s_lift"], ep
@@ -107,7 +112,7 @@ def test_baseline_lifts_a_medium_box_and_holds_it_under_disturbance():
 def test_open_hand_never_counts_as_a_lift():
     # Absolute actions: the open pose is then the hand's target throughout (in residual mode the rule
     # inside the env would close it).
-    env = _env((RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, action_mode="absolute")
+    env = _box_env(action_mode="absolute")
     episodes = []
     for _ in range(env.max_episode_length):
         _, _, _, extras = env.step(env.open_action.expand(1, -1))
@@ -127,7 +132,7 @@ def test_zero_residual_reproduces_the_rule_based_controller():
     closing_steps = 40
     targets = []
     for mode in ("absolute", "residual", "synergy"):
-        env = _env((RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, action_mode=mode)
+        env = _box_env(action_mode=mode)
         ctl = RuleBasedController(env)
         obs = env.get_observations()
         trace = []
@@ -150,14 +155,7 @@ def test_residual_is_low_pass_filtered():
     """A constant residual action a reaches the joints as the geometric series a (1 - (1 - b)^k), on top
     of the rule's target and through the outer target smoothing (recomputed here step by step)."""
     b = 0.25
-    env = _env(
-        (RIGID_MEDIUM_BOX,),
-        seed=0,
-        randomization__enabled=False,
-        action_mode="residual",
-        residual_rate=0.0,
-        residual_smoothing=b,
-    )
+    env = _box_env(action_mode="residual", residual_rate=0.0, residual_smoothing=b)
     action = torch.linspace(-1.0, 1.0, 16)[None]
     rest = env.residual_base.target.clone()  # the rule holds its rest pose through the approach
     a_s, target = env.cfg.action_smoothing, env.finger_target.clone()
@@ -177,14 +175,7 @@ def test_synergy_action_squeezes_each_fingers_flexion_joints():
     """Synergy mode: 4 actions, action f offsets finger f's three flexion joints (4f+1..4f+3) equally and
     no abduction joint; the offset is filtered like the residual mode's."""
     b = 0.25
-    env = _env(
-        (RIGID_MEDIUM_BOX,),
-        seed=0,
-        randomization__enabled=False,
-        action_mode="synergy",
-        residual_rate=0.0,
-        residual_smoothing=b,
-    )
+    env = _box_env(action_mode="synergy", residual_rate=0.0, residual_smoothing=b)
     assert env.num_actions == 4
     action = torch.tensor([[0.5, -1.0, 0.2, 1.0]])
     expected = torch.zeros(1, 16)
@@ -201,9 +192,7 @@ def test_synergy_action_squeezes_each_fingers_flexion_joints():
 def test_residual_integrator_holds_and_saturates():
     """residual_rate > 0: the residual is the clipped running sum of rate * action (zero holds it)."""
     rate = 0.3
-    env = _env(
-        (RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, action_mode="synergy", residual_rate=rate
-    )
+    env = _box_env(action_mode="synergy", residual_rate=rate)
     expected = np.zeros(4)
     for action in ([1.0, -0.5, 0.2, 0.0], [0.0] * 4) + ([1.0, -1.0, 0.5, -0.1],) * 3:
         env.step(torch.tensor([action]))
@@ -217,7 +206,7 @@ def test_residual_integrator_holds_and_saturates():
 
 def test_disturbance_force_pushes_a_free_object():
     # The hand waits in its pre-grasp pose; push the free box along +x with 2.5 N for 0.5 s.
-    env = _env((RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False, sim__use_graph=False)
+    env = _box_env(sim__use_graph=False)
     start = env._object_state()[0].clone()
     mass = float(env.object_mass[0])
     for _ in range(30):
@@ -240,7 +229,7 @@ def test_disturbance_force_pushes_a_free_object():
     "tangential forces do not cancel",
 )
 def test_held_object_contact_forces_balance_its_weight():
-    env = _env((RIGID_MEDIUM_BOX,), seed=0, randomization__enabled=False)
+    env = _box_env()
     ctl = RuleBasedController(env)
     obs = env.get_observations()
     hold_mid = (env.phase_start["hold"] + env.phase_start["disturb"]) // 2

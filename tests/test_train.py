@@ -222,6 +222,32 @@ class NumpyLstmPolicy:
         return y, h, c
 
 
+class ExportTwins:
+    """A checkpoint's TorchScript and ONNX exports stepped beside its NumPy transcription, each
+    carrying its own LSTM state; ``step`` asserts they agree."""
+
+    def __init__(self, ref: NumpyLstmPolicy, jit_path: Path, onnx_path: Path) -> None:
+        import onnxruntime as ort
+
+        self.ref = ref
+        self.jit = torch.jit.load(str(jit_path))
+        self.jit.reset()
+        self.sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+        self.h, self.c = ref.zero_state(1)
+        self.hx = np.zeros((1, 1, ref.hidden), np.float32)
+        self.cx = np.zeros((1, 1, ref.hidden), np.float32)
+
+    def step(self, x: np.ndarray) -> np.ndarray:
+        """Both exports' actions for the float32 observation ``x`` (1, obs_dim) against the reference's,
+        which is returned."""
+        want, self.h, self.c = self.ref.step(x.astype(np.float64), self.h, self.c)
+        got_jit = self.jit(torch.from_numpy(x)).detach().numpy()
+        got_onnx, self.hx, self.cx = self.sess.run(None, {"obs": x, "h_in": self.hx, "c_in": self.cx})
+        np.testing.assert_allclose(got_jit, want, atol=2e-5)
+        np.testing.assert_allclose(got_onnx, want, atol=2e-5)
+        return want
+
+
 # --------------------------------------------------------------------------- configs
 def test_train_cfg_per_task() -> None:
     for name, spec in TASKS.items():
@@ -387,19 +413,9 @@ def test_train_resume_play_export(tmp_path: Path, capsys: pytest.CaptureFixture[
     obs_dim = ref.w_ih.shape[1]
     rng = np.random.default_rng(1)
     seq = rng.normal(size=(12, 1, obs_dim)).astype(np.float32) * 2.0
-    jit = torch.jit.load(str(result.export.jit))
-    jit.reset()
-    import onnxruntime as ort
-
-    sess = ort.InferenceSession(str(result.export.onnx), providers=["CPUExecutionProvider"])
-    h, c = ref.zero_state(1)
-    hx, cx = np.zeros((1, 1, ref.hidden), np.float32), np.zeros((1, 1, ref.hidden), np.float32)
+    exports = ExportTwins(ref, result.export.jit, result.export.onnx)
     for t in range(len(seq)):
-        want, h, c = ref.step(seq[t].astype(np.float64), h, c)
-        got_jit = jit(torch.from_numpy(seq[t])).detach().numpy()
-        got_onnx, hx, cx = sess.run(None, {"obs": seq[t], "h_in": hx, "c_in": cx})
-        np.testing.assert_allclose(got_jit, want, atol=2e-5)
-        np.testing.assert_allclose(got_onnx, want, atol=2e-5)
+        want = exports.step(seq[t])
     # The state matters: the last step with a zero state gives a different action.
     fresh, _, _ = ref.step(seq[-1].astype(np.float64), *ref.zero_state(1))
     assert np.abs(fresh - want).max() > 1e-3
@@ -586,7 +602,6 @@ def test_shipped_policy_fits_its_task_and_its_exports_agree() -> None:
     """The package's trained policy loads on its task (observation and action sizes checked), is small,
     and its shipped TorchScript and ONNX exports act like a NumPy transcription of the checkpoint on
     real observations, LSTM state carried (stale exports would differ)."""
-    import onnxruntime as ort
     from d3grasp.train.play import load_runner
 
     from d3grasp.envs import make_env
@@ -598,20 +613,12 @@ def test_shipped_policy_fits_its_task_and_its_exports_agree() -> None:
     assert data["infos"]["task"] == DEFAULT_TASK
     env = make_env(DEFAULT_TASK, num_envs=1, seed=3, eval_mode=True)
     load_runner(env, DEFAULT_TASK, ckpt, "cpu")  # CheckpointError if the sizes no longer match
-    ref = NumpyLstmPolicy(data["actor_state_dict"])
-    jit = torch.jit.load(str(ckpt.parent / "exported" / "policy.pt"))
-    jit.reset()
-    sess = ort.InferenceSession(
-        str(ckpt.parent / "exported" / "policy.onnx"), providers=["CPUExecutionProvider"]
+    exported = ckpt.parent / "exported"
+    exports = ExportTwins(
+        NumpyLstmPolicy(data["actor_state_dict"]), exported / "policy.pt", exported / "policy.onnx"
     )
-    h, c = ref.zero_state(1)
-    hx, cx = np.zeros((1, 1, ref.hidden), np.float32), np.zeros((1, 1, ref.hidden), np.float32)
     obs = env.get_observations()
     for _ in range(env.phase_start["lift"] + 5):  # into the lift, where the policy squeezes
-        x = obs["policy"].numpy().astype(np.float32)
-        want, h, c = ref.step(x.astype(np.float64), h, c)
-        got_onnx, hx, cx = sess.run(None, {"obs": x, "h_in": hx, "c_in": cx})
-        np.testing.assert_allclose(jit(torch.from_numpy(x)).detach().numpy(), want, atol=2e-5)
-        np.testing.assert_allclose(got_onnx, want, atol=2e-5)
+        want = exports.step(obs["policy"].numpy().astype(np.float32))
         obs, *_ = env.step(torch.from_numpy(want.astype(np.float32)))
     assert np.abs(want).max() > 0.05  # a trained policy, not the zero residual of a fresh one
