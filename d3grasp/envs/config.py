@@ -12,18 +12,18 @@ from d3grasp.kernels.rewards import RewardConfig
 from d3grasp.kernels.tactile import TactileConfig
 
 ACTION_MODES: tuple[str, ...] = ("residual", "synergy", "absolute")
-"""How the 16 actions in [-1, 1] become joint targets. ``absolute`` (the paper's): each action spans
-its joint's range. ``residual``: the rule-based controller (d3grasp.envs.baseline) runs inside the
-environment and each action offsets its joint target by up to ``residual_scale`` rad, so the zero
-action is the baseline and learning starts from a hand that already closes on contact. On a 2-core
-CPU, PPO from the absolute action space did not reach a single lift in 115k steps (24 minutes), while
-the residual space keeps the policy near grasps from the first episode (residual RL). ``synergy``: the
-residual mode with one action per finger (4): action f offsets every flexion joint of finger f by the
-same amount (a per-finger squeeze, the first postural synergy of a grasp), the abduction joints
-none. Measured why: a constant +0.4 rad on every flexion joint from the lift phase on took the rule's
-train-split lift rate from 19% to 31%, a change the 4 squeeze actions express; PPO in the 16-joint
-residual space (3 episodes per iteration on 2 CPU cores) learned that direction but stayed level with
-the baseline after 800 iterations."""
+"""How the actions in [-1, 1] (16, or 4 in synergy mode) become joint targets. ``absolute`` (the paper's):
+each action spans its joint's range. ``residual``: the rule-based controller (d3grasp.envs.baseline) runs
+inside the environment and each action offsets its joint target by up to ``residual_scale`` rad, so the
+zero action is the baseline and learning starts from a hand that already closes on contact. On a 2-core
+CPU, PPO from the absolute action space did not reach a single lift in 115k steps (24 minutes), while the
+residual space keeps the policy near grasps from the first episode (residual RL). ``synergy``: the
+residual mode with one action per finger (4): action f offsets every flexion joint of finger f by the same
+amount (a per-finger squeeze, the first postural synergy of a grasp), the abduction joints none. Measured
+why: a constant +0.4 rad on every flexion joint from the lift phase on took the rule's train-split lift
+rate from 19% to 31%, a change the 4 squeeze actions express; PPO in the 16-joint residual space (3
+episodes per iteration on 2 CPU cores) learned that direction but stayed level with the baseline after 800
+iterations."""
 
 GRASP_TYPES: tuple[str, ...] = ("top", "side", "pinch")
 """The three archetypal grasp types (the paper's directional diversity of 3): top power grasp

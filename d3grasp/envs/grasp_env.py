@@ -419,7 +419,8 @@ class GraspEnv:
             self.open_action if self.cfg.action_mode == "absolute" else torch.zeros(A, device=tdev)
         )
         self.finger_target = torch.zeros(W, NUM_FINGER_JOINTS, dtype=f32, device=tdev)
-        self.residual = torch.zeros(W, NUM_FINGER_JOINTS, dtype=f32, device=tdev)  # filtered, [-1, 1]
+        # The residual applied per joint, in [-1, 1] (low-passed or integrated actions).
+        self.residual = torch.zeros(W, NUM_FINGER_JOINTS, dtype=f32, device=tdev)
         self.latency = torch.zeros(W, dtype=torch.long, device=tdev)
         self.grasp_id = torch.zeros(W, dtype=torch.long, device=tdev)
         self.grasp_palm_pos = torch.zeros(W, 3, dtype=f32, device=tdev)
@@ -1048,7 +1049,7 @@ class GraspEnv:
         if self.residual_base is not None:
             # The rule's current targets: what the residual is added to.
             parts.append(self.normalize_joints(self.residual_base.target))
-            parts.append(self.residual)  # the filtered residual now applied
+            parts.append(self.residual)  # the residual now applied (per joint)
         policy = torch.cat(parts, dim=-1)
 
         obj_pos, obj_quat, obj_lin, obj_ang = self._object_state()
