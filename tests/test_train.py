@@ -516,6 +516,32 @@ def test_checkpoint_of_another_task_is_refused(tmp_path: Path, capsys: pytest.Ca
     assert code == 2 and "does not fit task" in err and "'policy'" in err and "Traceback" not in err
 
 
+def test_checkpoint_records_and_checks_how_actions_become_targets(tmp_path: Path) -> None:
+    """A residual_rate (or other action-to-target setting) leaves every size the same, so only the
+    recorded values can tell a checkpoint of another meaning: it is refused, with the --set that fits."""
+    from d3grasp.envs import make_env
+
+    env = make_env(DEFAULT_TASK, num_envs=1, seed=0, residual_rate=0.05, action_smoothing=0.7)
+    cfg = make_train_cfg(DEFAULT_TASK)
+    cfg["algorithm"]["num_mini_batches"] = 1
+    runner = D3GraspRunner(env, cfg, log_dir=None, device="cpu", task_name=DEFAULT_TASK)
+    ckpt = tmp_path / "model_0.pt"
+    runner.save(str(ckpt))
+    recorded = read_checkpoint(ckpt)["infos"]["policy_interface"]
+    assert recorded == {
+        "action_mode": "synergy",
+        "residual_scale": 0.4,
+        "residual_smoothing": 0.2,
+        "residual_rate": 0.05,
+        "action_smoothing": 0.7,
+    }
+    runner.load(str(ckpt), load_cfg={"actor": True})  # same settings: loads
+    env.cfg.residual_rate = 0.08
+    refused = r"residual_rate=0\.05 \(environment: 0\.08\).*--set residual_rate=0\.05"
+    with pytest.raises(CheckpointError, match=refused):
+        runner.load(str(ckpt), load_cfg={"actor": True})
+
+
 @pytest.mark.slow
 def test_every_task_trains_and_plays(tmp_path: Path) -> None:
     for task in TASKS:

@@ -38,6 +38,7 @@ from rsl_rl.runners import OnPolicyRunner  # noqa: E402
 from rsl_rl.utils import check_nan  # noqa: E402
 
 from d3grasp.envs import close_env  # noqa: E402
+from d3grasp.envs.config import policy_interface  # noqa: E402
 
 __all__ = [
     "CheckpointError",
@@ -459,9 +460,15 @@ class D3GraspRunner(OnPolicyRunner):
         # TensorDict iterates over its batch dimension, not its keys: .keys() is needed.
         return {str(k): int(obs[k].shape[-1]) for k in obs.keys()}  # noqa: SIM118
 
+    def env_policy_interface(self) -> dict[str, Any] | None:
+        """How this env turns actions into joint targets (``d3grasp.envs.config.POLICY_INTERFACE``)."""
+        cfg = getattr(self.env, "cfg", None)
+        return policy_interface(cfg) if cfg is not None else None
+
     def checkpoint_infos(self) -> dict[str, Any]:
-        """What a checkpoint must match to be loaded: task, observation sizes, action count, models."""
-        return {
+        """What a checkpoint must match to be loaded: task, observation sizes, action count, models,
+        and the settings that map its actions to joint targets."""
+        infos = {
             "task": self.task_name,
             "obs_sizes": self.observation_sizes(),
             "obs_groups": {k: list(v) for k, v in self.cfg["obs_groups"].items()},
@@ -469,6 +476,10 @@ class D3GraspRunner(OnPolicyRunner):
             "actor": self.cfg["actor"],
             "critic": self.cfg["critic"],
         }
+        interface = self.env_policy_interface()
+        if interface is not None:
+            infos["policy_interface"] = interface
+        return infos
 
     def save(self, path: str, infos: dict | None = None) -> None:
         """Atomically save models, optimizer, completed-iteration count and ``checkpoint_infos()``."""
@@ -497,9 +508,24 @@ class D3GraspRunner(OnPolicyRunner):
                 f"checkpoint {path} was trained on task '{infos.get('task')}' and does not fit task "
                 f"'{self.task_name}' (checkpoint vs environment sizes: {sizes})"
             )
+        self._check_policy_interface(infos.get("policy_interface"), path)
         if infos.get("task") and self.task_name and infos["task"] != self.task_name:
             print(
                 f"[d3grasp] note: checkpoint trained on '{infos['task']}', running it on '{self.task_name}'"
+            )
+
+    def _check_policy_interface(self, theirs: dict[str, Any] | None, path: str) -> None:
+        """Refuse a checkpoint trained with other action-to-target settings (same sizes, other meaning)."""
+        mine = self.env_policy_interface()
+        if not theirs or mine is None:
+            return  # checkpoints from before the record, or an env without a GraspEnvConfig
+        diff = {k: (v, mine[k]) for k, v in theirs.items() if k in mine and mine[k] != v}
+        if diff:
+            given = ", ".join(f"{k}={a!r} (environment: {b!r})" for k, (a, b) in diff.items())
+            fix = " ".join(f"--set {k}={a}" for k, (a, _) in diff.items())
+            raise CheckpointError(
+                f"checkpoint {path} was trained with {given}: its actions mean something else in this "
+                f"environment; build it as trained ({fix})"
             )
 
     def load(

@@ -189,3 +189,21 @@ class GraspEnvConfig:
     reward_clip: float = 10.0
     tactile: TactileConfig = field(default_factory=TactileConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
+
+
+POLICY_INTERFACE: tuple[str, ...] = (
+    "action_mode",
+    "residual_scale",
+    "residual_smoothing",
+    "residual_rate",
+    "action_smoothing",
+)
+"""The settings that turn a policy's actions into joint targets. A checkpoint only means what it
+learned under the values it was trained with, and most of them leave every size unchanged (a
+residual_rate of 0.08 against 0 reads and writes the same tensors), so checkpoints record them and
+loading one into an environment with other values is refused rather than silently run."""
+
+
+def policy_interface(cfg: GraspEnvConfig) -> dict[str, object]:
+    """The ``POLICY_INTERFACE`` values of ``cfg`` (what a checkpoint records and is checked against)."""
+    return {key: getattr(cfg, key) for key in POLICY_INTERFACE}
