@@ -216,10 +216,17 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_train)
 
 
+def _positive_float(value: str) -> float:
+    x = float(value)
+    if not x > 0.0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return x
+
+
 def _cmd_env(args: argparse.Namespace) -> int:
     from d3grasp.envs.benchmark import run_env_benchmark
 
-    run_env_benchmark(args.worlds, args.kinds, steps=args.steps, device=args.device)
+    run_env_benchmark(args.worlds, args.kinds, episodes=args.episodes, device=args.device)
     return 0
 
 
@@ -227,7 +234,7 @@ def _add_env_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("env", help="env-steps/s and physics steps/s, rigid and soft, vs world count")
     p.add_argument("--worlds", type=int, nargs="+", default=[1, 8, 32], help="world counts")
     p.add_argument("--kinds", nargs="+", default=["rigid", "soft"], choices=["rigid", "soft"])
-    p.add_argument("--steps", type=int, default=30, help="timed control steps (median)")
+    p.add_argument("--episodes", type=_positive_float, default=1.0, help="timed episodes per row (0.5: half)")
     p.add_argument("--device", default="cpu", help="cpu or cuda:N")
     p.set_defaults(func=_cmd_env)
 
