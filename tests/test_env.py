@@ -221,12 +221,13 @@ def test_disturbance_force_pushes_a_free_object():
 
 @pytest.mark.xfail(
     strict=False,
-    reason="SolverVBD's exported contact_f does not balance a held object's weight: on box_01 "
-    "(m*g = 1.37 N), still in the hand (|v_z| < 1e-4 m/s), the vertical sum reads 4.0-4.2 N against "
-    "28.5 N of total contact force magnitude, and drops to 0.02 N the step a horizontal push starts; "
-    "resting on the table it is exact (1.37 N). The export re-evaluates friction from the last iterate's "
-    "micro-slip rather than reporting the static-friction load (our reading of the solver), so the grip's "
-    "tangential forces do not cancel",
+    reason="SolverVBD's contact forces on a held object do not balance its weight at 5 iterations: on "
+    "box_01 (m*g = 1.37 N) through the hold the vertical sum of the exported contact_f reads 3.0 N on "
+    "average (4.4 N at most), against 26.6 N of total contact force magnitude. The contacts are hard "
+    "AVBD constraints and the export equals their multipliers within a few percent; the sum converges "
+    "toward m*g with iterations (3.0 / 2.4 / 1.8 N at 5 / 10 / 20, measured), the finite-iteration "
+    "residual the solver documents, not a tactile-pipeline error (pad sums are checked in "
+    "test_kernels_tactile). Resting on the table the sum is exact (1.37 N)",
 )
 def test_held_object_contact_forces_balance_its_weight():
     env = _box_env()
