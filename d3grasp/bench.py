@@ -226,7 +226,9 @@ def _positive_float(value: str) -> float:
 def _cmd_env(args: argparse.Namespace) -> int:
     from d3grasp.envs.benchmark import run_env_benchmark
 
-    run_env_benchmark(args.worlds, args.kinds, episodes=args.episodes, device=args.device)
+    run_env_benchmark(
+        args.worlds, args.kinds, episodes=args.episodes, device=args.device, overrides=dict(args.overrides)
+    )
     return 0
 
 
@@ -236,6 +238,9 @@ def _add_env_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--kinds", nargs="+", default=["rigid", "soft"], choices=["rigid", "soft"])
     p.add_argument("--episodes", type=_positive_float, default=1.0, help="timed episodes per row (0.5: half)")
     p.add_argument("--device", default="cpu", help="cpu or cuda:N")
+    from d3grasp.train.cli_args import add_env_override_arg
+
+    add_env_override_arg(p, "env config override, e.g. sim.substeps=8 (a faster profile to compare)")
     p.set_defaults(func=_cmd_env)
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from typing import Any
 
 import torch
 import warp as wp
@@ -49,9 +50,11 @@ def _timed_physics_launch(env, physics_s: list[float]) -> Callable[[], None]:
     return launch
 
 
-def bench_one(kind: str, worlds: int, episodes: float, device: str) -> dict[str, float]:
+def bench_one(
+    kind: str, worlds: int, episodes: float, device: str, overrides: dict[str, Any] | None = None
+) -> dict[str, float]:
     t0 = time.perf_counter()
-    env = make_env(TASK_BY_KIND[kind], num_envs=worlds, device=device)
+    env = make_env(TASK_BY_KIND[kind], num_envs=worlds, device=device, **(overrides or {}))
     make_s = time.perf_counter() - t0
     if env.graph is None:
         raise RuntimeError("the env benchmark times the captured step: sim.use_graph must be on")
@@ -76,17 +79,22 @@ def bench_one(kind: str, worlds: int, episodes: float, device: str) -> dict[str,
 
 
 def run_env_benchmark(
-    worlds: list[int], kinds: list[str], episodes: float = 1.0, device: str = "cpu"
+    worlds: list[int],
+    kinds: list[str],
+    episodes: float = 1.0,
+    device: str = "cpu",
+    overrides: dict[str, Any] | None = None,
 ) -> None:
     print(
         f"env benchmark on {device}: {episodes:g} episode(s) from reset per row, all phases, the rule-based "
         "grasp acting (60 Hz control, substeps from SimConfig)"
+        + (f"; overrides {overrides}" if overrides else "")
     )
     header = ("kind", "worlds", "steps", "make env s", "env-steps/s", "physics/s", "step/physics")
     print(f"{header[0]:6s} " + " ".join(f"{h:>12s}" for h in header[1:]), flush=True)
     for kind in kinds:
         for w in worlds:
-            r = bench_one(kind, w, episodes, device)
+            r = bench_one(kind, w, episodes, device, overrides)
             print(
                 f"{kind:6s} {w:12d} {r['steps']:12d} {r['make_s']:12.1f} {r['env_steps_per_s']:12.0f} "
                 f"{r['physics_steps_per_s']:12.0f} {r['ratio']:12.2f}",
