@@ -319,7 +319,12 @@ def test_episode_stats_rates() -> None:
 # --------------------------------------------------------------------------- checkpoints
 def test_atomic_save_keeps_old_file_on_failure(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = tmp_path / "model_1.pt"
-    atomic_torch_save({"actor_state_dict": {"w": torch.ones(3)}, "iter": 1}, path)
+    old_mask = os.umask(0o027)
+    try:
+        atomic_torch_save({"actor_state_dict": {"w": torch.ones(3)}, "iter": 1}, path)
+    finally:
+        os.umask(old_mask)
+    assert path.stat().st_mode & 0o777 == 0o640  # a plain file's mode under umask 027, not mkstemp's 0600
     real_save = torch.save
 
     def failing_save(obj: Any, f: Any, *a: Any, **k: Any) -> None:

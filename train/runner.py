@@ -126,6 +126,13 @@ class EpisodeStats:
         self.counts.zero_()
 
 
+def _umask() -> int:
+    """The process umask (only readable by setting it: set and restore at once)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_torch_save(obj: Any, path: str | os.PathLike[str]) -> None:
     """``torch.save`` that never leaves a truncated file at ``path``: temp file, fsync, rename."""
     path = Path(path)
@@ -136,6 +143,8 @@ def atomic_torch_save(obj: Any, path: str | os.PathLike[str]) -> None:
             torch.save(obj, f)
             f.flush()
             os.fsync(f.fileno())
+        # mkstemp makes the file owner-only (0600); a checkpoint gets a plain file's mode instead.
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
