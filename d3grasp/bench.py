@@ -216,13 +216,6 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_train)
 
 
-def _positive_float(value: str) -> float:
-    x = float(value)
-    if not x > 0.0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
-    return x
-
-
 def _cmd_env(args: argparse.Namespace) -> int:
     from d3grasp.envs.benchmark import run_env_benchmark
 
@@ -236,10 +229,10 @@ def _add_env_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("env", help="env-steps/s and physics steps/s, rigid and soft, vs world count")
     p.add_argument("--worlds", type=int, nargs="+", default=[1, 8, 32], help="world counts")
     p.add_argument("--kinds", nargs="+", default=["rigid", "soft"], choices=["rigid", "soft"])
-    p.add_argument("--episodes", type=_positive_float, default=1.0, help="timed episodes per row (0.5: half)")
-    p.add_argument("--device", default="cpu", help="cpu or cuda:N")
-    from d3grasp.train.cli_args import add_env_override_arg
+    from d3grasp.train.cli_args import add_env_override_arg, positive_float
 
+    p.add_argument("--episodes", type=positive_float, default=1.0, help="timed episodes per row (0.5: half)")
+    p.add_argument("--device", default="cpu", help="cpu or cuda:N")
     add_env_override_arg(p, "env config override, e.g. sim.substeps=8 (a faster profile to compare)")
     p.set_defaults(func=_cmd_env)
 

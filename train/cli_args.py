@@ -19,7 +19,9 @@ __all__ = [
     "add_env_override_arg",
     "make_play_parser",
     "make_train_parser",
+    "non_negative_int",
     "parse_override",
+    "positive_float",
     "positive_int",
     "resolve_torch_threads",
     "run_command",
@@ -40,6 +42,14 @@ def non_negative_int(value: str) -> int:
     if n < 0:
         raise argparse.ArgumentTypeError(f"must be a non-negative integer, got {value}")
     return n
+
+
+def positive_float(value: str) -> float:
+    """argparse type: a number > 0."""
+    x = float(value)
+    if not x > 0.0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return x
 
 
 def _size(value: str) -> tuple[int, int]:
