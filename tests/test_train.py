@@ -643,7 +643,7 @@ def test_shipped_policy_fits_its_task_and_its_exports_agree() -> None:
     data = read_checkpoint(ckpt)
     assert data["infos"]["task"] == DEFAULT_TASK
     env = make_env(DEFAULT_TASK, num_envs=1, seed=3, eval_mode=True)
-    load_runner(env, DEFAULT_TASK, ckpt, "cpu")  # CheckpointError if the sizes no longer match
+    load_runner(env, DEFAULT_TASK, ckpt, "cpu")  # CheckpointError if sizes or action mapping differ
     exported = ckpt.parent / "exported"
     exports = ExportTwins(
         NumpyLstmPolicy(data["actor_state_dict"]), exported / "policy.pt", exported / "policy.onnx"

@@ -8,7 +8,7 @@ observations + rewards + scoring) and of the bare captured physics inside it (``
 collide + SolverVBD step), and their ratio.
 
 Why whole episodes: the cost of a step follows the contacts. The first half second (approach, no
-touch) runs ~1.3-1.5x faster than the grasp and lift (30-60 contacts per world, objects of many
+touch) runs ~1.2-1.7x faster than the grasp and lift (30-60 contacts per world, objects of many
 hulls up to 200), so timing only the first steps after reset overstates the throughput.
 """
 
