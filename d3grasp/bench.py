@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m d3grasp.bench kernels``, ``env`` and ``train``.
+"""Benchmarks: ``python -m d3grasp.bench kernels``, ``env`` and ``train``; ``soak`` (see d3grasp.soak).
 
 ``kernels`` times one launch of each batched kernel group for 1, 16 and 256 worlds with realistic
 sizes per world: 11 pads on a 20-shape hand+object, 2000 contact rows (1000 rigid + 1000 soft, half
@@ -155,7 +155,9 @@ def _kernel_fixtures(num_worlds: int, rng: np.random.Generator) -> dict[str, Cal
 def _cmd_kernels(args: argparse.Namespace) -> int:
     import warp as wp
 
-    wp.config.quiet = True
+    from d3grasp.console import quiet_warp
+
+    quiet_warp()
     wp.init()
     rng = np.random.default_rng(0)
     with wp.ScopedDevice(args.device):
@@ -237,12 +239,61 @@ def _add_env_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_env)
 
 
+def _cmd_soak(args: argparse.Namespace) -> int:
+    from d3grasp.soak import run_soak
+
+    report = run_soak(
+        args.steps,
+        task=args.task,
+        num_envs=args.num_envs,
+        seed=args.seed,
+        rebuild_every=args.rebuild_every,
+        soft_fraction=args.soft_fraction,
+        overrides=dict(args.overrides),
+        state=args.state,
+        resume=args.resume,
+        device=args.device,
+        progress=not args.no_progress,
+    )
+    print(report.summary())
+    return 1 if report.crashes else 0
+
+
+def _add_soak_parser(sub: argparse._SubParsersAction) -> None:
+    from d3grasp.train.cli_args import add_env_override_arg, positive_int
+
+    p = sub.add_parser(
+        "soak",
+        help="random actions on mixed rigid and soft worlds for N env-steps: resets, blow-ups, crashes",
+    )
+    p.add_argument("--steps", type=positive_int, default=100_000, help="env-steps in all (default 1e5)")
+    p.add_argument("--task", default=None, help="registered task (default: the mixed task)")
+    p.add_argument("--num_envs", type=positive_int, default=16, help="worlds per build (default 16)")
+    p.add_argument(
+        "--rebuild_every", type=positive_int, default=20_000, help="env-steps between object redraws"
+    )
+    p.add_argument(
+        "--soft_fraction",
+        type=float,
+        default=0.25,
+        help="share of soft worlds (default 0.25, as in training)",
+    )
+    add_env_override_arg(p, "env config override, e.g. sim.iterations=10")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--state", default=None, help="JSON file the progress is saved to after each build")
+    p.add_argument("--resume", action="store_true", help="continue the soak saved in --state")
+    p.add_argument("--device", default="cpu", help="cpu or cuda:N")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_soak)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m d3grasp.bench", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     _add_kernels_parser(sub)
     _add_train_parser(sub)
     _add_env_parser(sub)
+    _add_soak_parser(sub)
     args = parser.parse_args(argv)
     if any(w < 1 for w in getattr(args, "worlds", [1])):
         parser.error("--worlds must be positive")

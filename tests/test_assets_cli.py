@@ -127,6 +127,44 @@ def test_import_absurd_size_and_open_soft(tmp_path: Path, capsys: pytest.Capture
     assert not (tmp_path / "lib").exists()
 
 
+def test_import_skip_invalid_writes_the_rest(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    trimesh.creation.box(extents=[0.06, 0.04, 0.03]).export(tmp_path / "brick.stl")
+    trimesh.creation.box(extents=[0.5, 0.3, 0.3]).export(tmp_path / "crate.stl")  # 50 cm: too large
+    trimesh.creation.icosphere(subdivisions=2, radius=0.03).export(tmp_path / "ball.stl")
+    meshes = [str(tmp_path / n) for n in ("brick.stl", "crate.stl", "ball.stl")]
+    out = tmp_path / "lib"
+    # Default: one mesh out of range imports nothing.
+    code, stdout, err = _run(capsys, "import", *meshes, "--out", str(out))
+    assert code == 2 and len(_error_lines(err)) == 1 and "crate.stl" in err and not out.exists()
+    # --skip-invalid: the other two are written, the refused one is listed with its reason, exit 3.
+    code, stdout, err = _run(capsys, "import", *meshes, "--out", str(out), "--skip-invalid")
+    skipped = [ln for ln in err.replace("\r", "\n").splitlines() if ln.startswith("skipped ")]
+    assert code == 3 and len(skipped) == 1
+    assert skipped[0].startswith(f"skipped {tmp_path / 'crate.stl'}: ") and "50 cm" in skipped[0]
+    assert {e.id for e in read_manifest(out / "manifest.json")} == {"brick", "ball"}
+    assert "2 assets written" in stdout
+    # --skip-invalid with nothing valid is still bad input: exit 2, nothing written.
+    code, _, err = _run(capsys, "import", meshes[1], "--out", str(tmp_path / "none"), "--skip-invalid")
+    assert code == 2 and "none of the 1 meshes" in err and not (tmp_path / "none").exists()
+
+
+@pytest.mark.skipif(
+    __import__("importlib").util.find_spec("pytetwild") is None, reason="tet meshing needs pytetwild"
+)
+def test_reimport_says_what_it_replaced(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    trimesh.creation.icosphere(subdivisions=2, radius=0.035).export(tmp_path / "pear.stl")
+    out = tmp_path / "lib"
+    code, _, err = _run(capsys, "import", str(tmp_path / "pear.stl"), "--out", str(out))
+    assert code == 0, err
+    code, stdout, err = _run(capsys, "import", str(tmp_path / "pear.stl"), "--out", str(out), "--deformable")
+    assert code == 0, err
+    assert "replaced the rigid asset pear (objects/rigid/pear.usda, from import:pear.stl)" in stdout
+    (entry,) = read_manifest(out / "manifest.json")
+    assert entry.kind == "deformable"
+    assert not (out / "objects/rigid/pear.usda").exists()  # the old kind's file went with its entry
+    assert (out / entry.path).is_file()
+
+
 def test_import_rejects_soft_options_for_rigid(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     trimesh.creation.box(extents=[0.05] * 3).export(tmp_path / "b.obj")
     code, _, err = _run(

@@ -262,3 +262,39 @@ def test_parse_override() -> None:
     assert parse_override("sim.use_graph=false") == ("sim__use_graph", False)
     assert parse_override("randomization.friction=[0.5, 1.0]") == ("randomization__friction", (0.5, 1.0))
     assert parse_override("grasp_mode=sample") == ("grasp_mode", "sample")
+
+
+def test_results_json_is_strict_json_with_null_for_non_finite(tmp_path: Path) -> None:
+    """A blown-up episode's max strain (NaN) is written as null: strict parsers read the file."""
+    from d3grasp.eval.evaluate import EvalResult, EvalSettings, write_outputs
+
+    def episode(obj: str, strain: float, failure: str | None) -> dict[str, Any]:
+        return {
+            "env": 0,
+            "object": obj,
+            "kind": "deformable",
+            "family": "sponge",
+            "size_bin": "small",
+            "grasp_type": "side",
+            "s_grasp": True,
+            "s_lift": failure is None,
+            "s_disturb": failure is None,
+            "failure": failure,
+            "max_strain": strain,
+            "return": 1.5,
+            "length": 300,
+        }
+
+    eps = [episode("sponge_a", float("nan"), "non-finite state"), episode("sponge_b", 0.21, None)]
+    result = EvalResult(
+        settings=EvalSettings(), objects=["sponge_a", "sponge_b"], manifest=None, runs={"baseline": eps}
+    )
+    write_outputs(result, tmp_path, log=lambda _: None)
+
+    def refuse(name: str) -> None:
+        raise ValueError(f"non-standard JSON constant {name}")
+
+    doc = json.loads((tmp_path / "results.json").read_text(), parse_constant=refuse)
+    written = doc["runs"]["baseline"]["episodes"]
+    assert [e["max_strain"] for e in written] == [None, 0.21]
+    assert eps[0]["max_strain"] != eps[0]["max_strain"]  # the records themselves are left as they were

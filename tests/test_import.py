@@ -47,7 +47,7 @@ def test_import_box_every_format(tmp_path: Path, suffix: str) -> None:
     _box_mesh().export(src)
     out = tmp_path / "lib"
     rho, mu = 700.0, 0.65
-    entries = import_meshes([src], out, density=rho, friction=mu)
+    entries = import_meshes([src], out, density=rho, friction=mu).entries
     assert [e.id for e in entries] == ["my_box"]
     (e,) = read_manifest(out / "manifest.json")
     a, b, c = BOX
@@ -72,7 +72,7 @@ def test_import_torus_gets_several_hulls(tmp_path: Path) -> None:
     R, r = 0.04, 0.012
     src = tmp_path / "ring.stl"
     trimesh.creation.torus(major_radius=R, minor_radius=r, major_sections=24, minor_sections=10).export(src)
-    (e,) = import_meshes([src], tmp_path / "lib", density=1000.0)
+    (e,) = import_meshes([src], tmp_path / "lib", density=1000.0).entries
     assert 2 <= e.stats["num_hulls"] <= 16
     assert all(4 <= n <= 64 for n in e.stats["num_hull_vertices"])
     # The faceted torus is a little smaller than the smooth one (2 pi^2 R r^2).
@@ -88,7 +88,7 @@ def test_import_scale_and_reimport_replaces(tmp_path: Path) -> None:
     src = tmp_path / "mm_box.stl"
     trimesh.creation.box(extents=[s * 1000 for s in BOX]).export(src)  # authored in millimetres
     out = tmp_path / "lib"
-    (e,) = import_meshes([src], out, scale=0.001)
+    (e,) = import_meshes([src], out, scale=0.001).entries
     assert max(e.extents) == pytest.approx(0.05, rel=1e-6)
     other = tmp_path / "other.obj"
     _box_mesh().export(other)
@@ -214,7 +214,7 @@ def test_import_deformable_sphere(tmp_path: Path) -> None:
     E, nu, rho = 8.0e4, 0.35, 250.0
     (e,) = import_meshes(
         [src], tmp_path / "lib", deformable=True, youngs_modulus=E, poissons_ratio=nu, density=rho
-    )
+    ).entries
     assert e.kind == "deformable" and e.size_bin == "medium"
     # Tet volume within 5% of the sphere's (the mesher works on a faceted icosphere).
     assert e.volume == pytest.approx(4 / 3 * np.pi * 0.035**3, rel=0.08)

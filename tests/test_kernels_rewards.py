@@ -14,7 +14,7 @@ from d3grasp.kernels.rewards import (
     make_inputs,
 )
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING
 
 W, J, L, P, K = 7, 16, 16, 11, 12
 

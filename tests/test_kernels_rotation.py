@@ -16,7 +16,7 @@ from d3grasp.kernels.rotation import (
 from d3grasp.kernels.strain import StrainBuffers, StrainLayout, compute_sigma, grid_tet_mesh
 from scipy.spatial.transform import Rotation
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING
 
 
 def quat_close(q: np.ndarray, ref: np.ndarray, tol: float) -> bool:

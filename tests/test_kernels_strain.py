@@ -17,7 +17,7 @@ from d3grasp.kernels.strain import (
 )
 from scipy.spatial.transform import Rotation
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING
 
 
 def ref_strain(

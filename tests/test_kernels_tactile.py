@@ -17,7 +17,7 @@ from d3grasp.kernels.tactile import (
 )
 from scipy.spatial.transform import Rotation
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING
 
 W = 3
 SHAPES_PER_WORLD = NUM_PADS + 2  # 11 pads + 2 non-pad shapes (palm, object) per world

@@ -194,6 +194,9 @@ def make_play_parser() -> argparse.ArgumentParser:
     p.add_argument("--no_export", action="store_true", help="skip the TorchScript/ONNX export")
     p.add_argument("--latency_steps", type=positive_int, default=200, help="policy steps timed (default 200)")
     p.add_argument("--max_steps", type=positive_int, default=None, help="stop after this many env steps")
+    p.add_argument(
+        "--verbose", action="store_true", help="also what Warp and rsl-rl report (module loads, models)"
+    )
     return p
 
 

@@ -29,6 +29,7 @@ from d3grasp.train.export import ExportPaths, LatencyReport, export_policy, meas
 from d3grasp.train.runner import D3GraspRunner, EpisodeStats, read_checkpoint  # noqa: E402
 from d3grasp.train.train import DistInfo, load_env_factory, resolve_device, seed_everything  # noqa: E402
 
+from d3grasp.console import library_output, set_verbosity  # noqa: E402
 from d3grasp.envs import close_env  # noqa: E402
 from d3grasp.envs.registry import get_task  # noqa: E402
 from d3grasp.policies import BASELINE, resolve_checkpoint  # noqa: E402
@@ -81,7 +82,8 @@ def load_runner(env: Any, task: str, checkpoint: Any, device: str, data: dict | 
             cfg[section] = infos[section]
     if isinstance(infos.get("obs_groups"), dict) and "actor" in infos["obs_groups"]:
         cfg["obs_groups"]["actor"] = list(infos["obs_groups"]["actor"])
-    runner = D3GraspRunner(env, cfg, log_dir=None, device=device, task_name=task)
+    with library_output("rsl-rl, building the runner"):  # its model printout: --verbose shows it
+        runner = D3GraspRunner(env, cfg, log_dir=None, device=device, task_name=task)
     runner.load(str(checkpoint), load_cfg={"actor": True})
     return runner
 
@@ -225,6 +227,7 @@ def _summary_lines(stats: EpisodeStats) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> int:
     args: argparse.Namespace = make_play_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     torch.set_num_threads(resolve_torch_threads(args.torch_threads))
+    set_verbosity(args.verbose)
 
     def body() -> None:
         if args.video:

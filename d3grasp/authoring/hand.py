@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from d3grasp.authoring.precision import export_layer
+
 # --------------------------------------------------------------------------------------------
 # Names and fixed orders (the environment, the tactile kernel and the rewards index with these).
 # --------------------------------------------------------------------------------------------
@@ -536,8 +538,7 @@ def write_hand_usd(
             physics.finger_max_force,
         )
 
-    text = stage.GetRootLayer().ExportToString()
-    out_path.write_text(text)
+    export_layer(stage.GetRootLayer(), str(out_path))
     return out_path
 
 

@@ -4,7 +4,7 @@
 procedural library builders in ``tools/`` use them too, so imported and shipped assets have the
 same form. :func:`import_meshes` checks every input first, writes into a temporary directory and
 moves the result into place only when every mesh succeeded, so a failure leaves no partial
-output behind.
+output behind (or, asked to skip invalid meshes, writes the rest and lists what it refused).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import re
 import shutil
 import tempfile
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -249,6 +250,15 @@ def _unique_ids(paths: list[Path], taken: set[str]) -> list[str]:
     return ids
 
 
+@dataclass
+class ImportResult:
+    """What :func:`import_meshes` did: the assets written, the meshes refused, the assets replaced."""
+
+    entries: list[AssetEntry]
+    skipped: list[tuple[Path, str]] = field(default_factory=list)  # (mesh file, one-line reason)
+    replaced: list[AssetEntry] = field(default_factory=list)  # the old entries the new ones replaced
+
+
 def import_meshes(
     paths: Iterable[str | Path],
     out_dir: str | Path,
@@ -261,14 +271,20 @@ def import_meshes(
     poissons_ratio: float = DEFAULT_POISSONS_RATIO,
     target_tets: int = DEFAULT_TARGET_TETS,
     family: str = "imported",
+    skip_invalid: bool = False,
     progress: Callable[[Iterable[Any]], Iterable[Any]] | None = None,
-) -> list[AssetEntry]:
+) -> ImportResult:
     """Import user meshes into the library at ``out_dir`` (USD files + ``out_dir/manifest.json``).
 
-    All meshes are checked before anything is written; any :class:`MeshError` aborts the whole
-    import with ``out_dir`` untouched. Entries whose ids already exist in ``out_dir``'s manifest
-    (re-imports of the same file name) replace the old ones; other entries are kept.
-    ``progress`` wraps the per-mesh loop (e.g. ``tqdm``).
+    By default every mesh must succeed: any :class:`MeshError` (a bad file, a mesh out of the
+    graspable size range, a failed tet meshing) aborts the whole import with ``out_dir``
+    untouched. With ``skip_invalid`` the meshes that fail are left out and listed in
+    ``ImportResult.skipped`` with their reasons, and the rest are written; a :class:`MeshError`
+    is still raised when none succeeds. Entries whose ids already exist in ``out_dir``'s
+    manifest (re-imports of the same file name) replace the old ones, the old file too when the
+    kind changed (rigid and soft assets live in different folders); they are listed in
+    ``ImportResult.replaced``. Other entries are kept. ``progress`` wraps the per-mesh loop
+    (e.g. ``tqdm``).
     """
     paths = [Path(p) for p in paths]
     if not paths:
@@ -280,6 +296,10 @@ def import_meshes(
             raise ValueError(f"Young's modulus must be positive, got {youngs_modulus}")
         if not (-1.0 < poissons_ratio < 0.5):
             raise ValueError(f"Poisson's ratio must be in (-1, 0.5), got {poissons_ratio}")
+        from d3grasp.authoring.tetmesh import MAX_TETS, MIN_TETS
+
+        if not (MIN_TETS <= target_tets <= MAX_TETS):
+            raise ValueError(f"--target-tets must be in [{MIN_TETS}, {MAX_TETS}], got {target_tets}")
     rho = density if density is not None else (DEFAULT_SOFT_DENSITY if deformable else DEFAULT_RIGID_DENSITY)
     if not (np.isfinite(rho) and rho > 0):
         raise ValueError(f"density must be positive, got {rho}")
@@ -296,43 +316,63 @@ def import_meshes(
     existing = read_manifest(manifest_path) if manifest_path.exists() else []
     # Re-importing a file replaces its asset, so ids are made unique only among this batch.
     ids = _unique_ids(paths, set())
+    skipped: list[tuple[Path, str]] = []
+
+    def refuse(p: Path, exc: MeshError) -> None:
+        if not skip_invalid:
+            raise exc
+        skipped.append((p, str(exc).removeprefix(f"{p}: ")))
 
     # 1) Check everything before writing anything.
-    meshes = [load_and_check(p, scale=scale, require_watertight=deformable) for p in paths]
+    items: list[tuple[Path, str, trimesh.Trimesh]] = []
+    for p, aid in zip(paths, ids, strict=True):
+        try:
+            items.append((p, aid, load_and_check(p, scale=scale, require_watertight=deformable)))
+        except MeshError as exc:
+            refuse(p, exc)
 
     # 2) Author into a temporary directory next to the output (same file system: atomic moves).
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".d3grasp-import-", dir=out_dir.parent))
     try:
         entries: list[AssetEntry] = []
-        items = list(zip(paths, ids, meshes, strict=True))
         for p, aid, mesh in progress(items) if progress else items:
             src = f"import:{p.name}" + (f" scale={scale:g}" if scale != 1.0 else "")
-            if deformable:
-                e = author_soft(
-                    mesh,
-                    tmp,
-                    aid,
-                    family=family,
-                    youngs_modulus=youngs_modulus,
-                    poissons_ratio=poissons_ratio,
-                    density=rho,
-                    friction=mu,
-                    target_tets=target_tets,
-                    source=src,
-                    label=str(p),
-                )
-            else:
-                e = author_rigid(mesh, tmp, aid, family=family, density=rho, friction=mu, source=src)
+            try:
+                if deformable:
+                    e = author_soft(
+                        mesh,
+                        tmp,
+                        aid,
+                        family=family,
+                        youngs_modulus=youngs_modulus,
+                        poissons_ratio=poissons_ratio,
+                        density=rho,
+                        friction=mu,
+                        target_tets=target_tets,
+                        source=src,
+                        label=str(p),
+                    )
+                else:
+                    e = author_rigid(mesh, tmp, aid, family=family, density=rho, friction=mu, source=src)
+            except MeshError as exc:
+                refuse(p, exc)
+                continue
             entries.append(e)
+        if not entries:
+            reasons = "; ".join(f"{p.name}: {why}" for p, why in skipped[:3])
+            raise MeshError(f"{out_dir}: none of the {len(paths)} meshes could be imported ({reasons})")
         # 3) Move into place, then write the merged manifest (atomically).
         for e in entries:
             dst = out_dir / e.path
             dst.parent.mkdir(parents=True, exist_ok=True)
             os.replace(tmp / e.path, dst)
-        new_ids = {e.id for e in entries}
-        kept = [e for e in existing if e.id not in new_ids]
-        write_manifest(manifest_path, kept + entries)
+        by_id = {e.id: e for e in entries}
+        replaced = [old for old in existing if old.id in by_id]
+        write_manifest(manifest_path, [e for e in existing if e.id not in by_id] + entries)
+        for old in replaced:  # a kind change leaves the old file in the other kind's folder
+            if old.path != by_id[old.id].path:
+                (out_dir / old.path).unlink(missing_ok=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return entries
+    return ImportResult(entries=entries, skipped=skipped, replaced=replaced)

@@ -23,6 +23,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from d3grasp.authoring.precision import stable_json
+
 MANIFEST_FORMAT = "d3grasp-manifest"
 MANIFEST_VERSION = 1
 
@@ -95,7 +97,7 @@ def write_manifest(path: str | Path, entries: list[AssetEntry]) -> None:
         "format": MANIFEST_FORMAT,
         "version": MANIFEST_VERSION,
         "size_bins": {k: list(v) for k, v in SIZE_BINS.items()},
-        "assets": [asdict(e) for e in entries],
+        "assets": [stable_json(asdict(e)) for e in entries],
     }
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".manifest-", suffix=".json")

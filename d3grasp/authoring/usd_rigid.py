@@ -24,6 +24,7 @@ import numpy as np
 import trimesh
 
 from d3grasp.authoring.convex import Hull
+from d3grasp.authoring.precision import export_layer
 
 # Coordinates are written rounded to 10 micrometres: far below any contact tolerance, and it
 # keeps the text files small (float32 shortest representations).
@@ -149,5 +150,5 @@ def write_rigid_usd(
         )
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    stage.GetRootLayer().Export(str(path))
+    export_layer(stage.GetRootLayer(), str(path))
     return path

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from .precision import export_layer
 from .tetmesh import check_tet_mesh, rest_volume_and_mass, surface_faces
 
 # Keys of the manifest's deformable material dict that this writer needs.
@@ -103,7 +104,7 @@ def write_soft_usd(
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    stage = Usd.Stage.CreateNew(str(path))
+    stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     UsdPhysics.SetStageKilogramsPerUnit(stage, 1.0)
@@ -163,7 +164,7 @@ def write_soft_usd(
     root.GetPrim().SetCustomDataByKey("d3grasp:mass", float(mass))
     for key, value in (custom_data or {}).items():
         root.GetPrim().SetCustomDataByKey(key, value)
-    stage.GetRootLayer().Save()
+    export_layer(stage.GetRootLayer(), str(path))
 
 
 def read_soft_usd(path: str | Path) -> dict[str, Any]:

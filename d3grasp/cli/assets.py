@@ -1,12 +1,15 @@
 """``d3grasp-assets``: build, import, validate and list simulation assets.
 
     d3grasp-assets build [--tools-dir DIR] [--out DIR] [--only hand,rigid,soft]
-    d3grasp-assets import MESH... --out DIR [--deformable --youngs-modulus E --poisson P]
+    d3grasp-assets import MESH... --out DIR [--deformable --youngs-modulus E --poisson P --target-tets N]
                           [--density RHO] [--friction MU] [--scale S] [--family NAME]
+                          [--skip-invalid]
     d3grasp-assets validate [DIR|MANIFEST] [--no-hand]
     d3grasp-assets list [DIR|MANIFEST]
 
-Exit status: 0 success, 1 validation failure, 2 bad input (one line ``error: <file>: <reason>``).
+Exit status: 0 success, 1 validation failure, 2 bad input (one line ``error: <file>: <reason>``;
+nothing written), 3 ``import --skip-invalid`` wrote some meshes and refused others (one line
+``skipped <file>: <reason>`` each on stderr).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from typing import Any
 
 EXIT_FAIL = 1
 EXIT_BAD_INPUT = 2
+EXIT_PARTIAL = 3
 
 
 def _progress(desc: str, unit: str = "asset"):
@@ -122,10 +126,12 @@ def cmd_import(args: argparse.Namespace) -> int:
         kw["youngs_modulus"] = args.youngs_modulus
     if args.poisson is not None:
         kw["poissons_ratio"] = args.poisson
+    if args.target_tets is not None:
+        kw["target_tets"] = args.target_tets
     if not args.deformable and kw:
-        return _error("--youngs-modulus/--poisson only apply with --deformable")
+        return _error("--youngs-modulus/--poisson/--target-tets only apply with --deformable")
     try:
-        entries = import_meshes(
+        result = import_meshes(
             args.meshes,
             args.out,
             deformable=args.deformable,
@@ -133,12 +139,14 @@ def cmd_import(args: argparse.Namespace) -> int:
             density=args.density,
             friction=args.friction,
             family=args.family,
+            skip_invalid=args.skip_invalid,
             progress=_progress("import", "mesh"),
             **kw,
         )
     except (MeshError, ValueError, FileNotFoundError, ImportError) as exc:
         return _error(str(exc))
-    for e in entries:
+    replaced = {e.id: e for e in result.replaced}
+    for e in result.entries:
         extra = (
             f"{e.stats['num_hulls']} hulls"
             if e.kind == "rigid"
@@ -146,7 +154,15 @@ def cmd_import(args: argparse.Namespace) -> int:
         )
         dims = " x ".join(f"{x * 100:.1f}" for x in e.extents)
         print(f"{e.id}: {e.kind}, {e.size_bin}, {dims} cm, {e.mass * 1e3:.1f} g, {extra} -> {e.path}")
-    print(f"{len(entries)} assets written; manifest {Path(args.out) / 'manifest.json'}")
+        if e.id in replaced:
+            old = replaced[e.id]
+            print(f"  replaced the {old.kind} asset {old.id} ({old.path}, from {old.source or 'unknown'})")
+    print(f"{len(result.entries)} assets written; manifest {Path(args.out) / 'manifest.json'}")
+    for path, why in result.skipped:
+        print(f"skipped {path}: {why}", file=sys.stderr)
+    if result.skipped:
+        print(f"{len(result.skipped)} of {len(args.meshes)} meshes refused (listed above)", file=sys.stderr)
+        return EXIT_PARTIAL
     return 0
 
 
@@ -154,10 +170,9 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    import warp as wp
+    from d3grasp.console import quiet_warp
 
-    # Keep the summary table readable: no Warp banner or module-load lines on stdout.
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    quiet_warp()  # keep the summary table readable: no Warp banner or module-load lines on stdout
     from d3grasp.authoring.validate import validate_library
 
     mpath = _resolve_manifest(args.path)
@@ -226,12 +241,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--youngs-modulus", type=float, help="Young's modulus E in Pa (deformable; default 5e4)")
     p.add_argument("--poisson", type=float, help="Poisson's ratio (deformable; default 0.3)")
+    p.add_argument("--target-tets", type=int, help="tets to aim for, 200-2000 (deformable; default 800)")
     p.add_argument("--density", type=float, help="kg/m^3 (default 1000 rigid, 200 deformable)")
     p.add_argument("--friction", type=float, help="friction coefficient (default 0.8 rigid, 1.0 deformable)")
     p.add_argument(
         "--scale", type=float, default=1.0, help="uniform scale to metres (e.g. 0.001 for mm files)"
     )
     p.add_argument("--family", default="imported", help="family name recorded in the manifest")
+    p.add_argument(
+        "--skip-invalid",
+        action="store_true",
+        help="import the meshes that pass and list the others with their reasons (exit 3); by "
+        "default one invalid mesh imports nothing (exit 2)",
+    )
     p.set_defaults(func=cmd_import)
 
     p = sub.add_parser("validate", help="load every asset in Newton and check it against the manifest")

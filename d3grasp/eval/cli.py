@@ -82,6 +82,9 @@ def make_parser() -> argparse.ArgumentParser:
         "by side (adds a localisation-error table)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--verbose", action="store_true", help="also what Warp and rsl-rl report (module loads, models)"
+    )
     return p
 
 
@@ -93,9 +96,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from d3grasp.train.cli_args import resolve_torch_threads, run_command
 
     torch.set_num_threads(resolve_torch_threads(args.torch_threads))
-    import warp as wp
+    from d3grasp.console import set_verbosity
 
-    wp.config.quiet = True  # one line per cached kernel module would bury the progress bar
+    set_verbosity(args.verbose)  # a line per cached kernel module would bury the progress bar
     settings = EvalSettings(
         checkpoint=args.checkpoint,  # None in the ablation mode
         ablation=tuple(args.ablation or ()),

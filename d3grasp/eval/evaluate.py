@@ -442,6 +442,17 @@ def _ablation_header(spec: RunSpec) -> str:
     return f"{spec.label} (symmetric; actor: {actor})"
 
 
+def _finite_or_null(value: Any) -> Any:
+    """A copy of a JSON-able value with NaN and infinities replaced by ``None``."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_null(v) for v in value]
+    return value
+
+
 def write_outputs(
     result: EvalResult, out_dir: str | os.PathLike[str], log: Callable[[str], None] = print
 ) -> dict[str, Path]:
@@ -453,7 +464,9 @@ def write_outputs(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"results": out / "results.json", "summary": out / "summary.csv", "table": out / "table.md"}
-    paths["results"].write_text(json.dumps(result.to_json(), indent=1, sort_keys=True) + "\n")
+    # Strict JSON: a non-finite number (the max strain of an episode whose state blew up) is null.
+    doc = json.dumps(_finite_or_null(result.to_json()), indent=1, sort_keys=True, allow_nan=False)
+    paths["results"].write_text(doc + "\n")
 
     with paths["summary"].open("w", newline="") as f:
         fields = ["run", "column", "metric", "successes", "trials", "rate", "ci_low", "ci_high"]

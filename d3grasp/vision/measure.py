@@ -67,12 +67,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, default=1)
     p.add_argument("--batch", type=int, default=40, help="worlds per environment")
     args = p.parse_args(argv)
-    import warp as wp
 
     from d3grasp.authoring.manifest import read_manifest
+    from d3grasp.console import quiet_warp
     from d3grasp.paths import default_manifest
 
-    wp.config.quiet = True
+    quiet_warp()
     entries = [
         e
         for e in read_manifest(default_manifest())

@@ -1,0 +1,53 @@
+"""What the console commands print: progress, results and errors by default; library chatter
+(Warp's start-up banner and per-module load times, rsl-rl's model printout) behind ``--verbose``.
+
+Warp 1.19 decides what it prints by ``wp.config.log_level`` (its old ``wp.config.quiet`` flag is
+gone: setting it does nothing); rsl-rl prints its networks with ``print`` while a runner is built,
+which :func:`library_output` turns into debug records of the ``d3grasp`` logger.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+from collections.abc import Iterator
+
+LOGGER = logging.getLogger("d3grasp")
+
+__all__ = ["LOGGER", "library_output", "quiet_warp", "set_verbosity"]
+
+
+def quiet_warp() -> None:
+    """Warp prints warnings and errors only (no banner, no module-load lines)."""
+    import warp as wp
+
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+
+
+def set_verbosity(verbose: bool) -> None:
+    """Set up a console command's output: ``verbose`` shows what Warp and rsl-rl report."""
+    import warp as wp
+
+    if verbose:
+        wp.config.log_level = min(wp.config.log_level, wp.LOG_INFO)
+    else:
+        quiet_warp()
+    if not LOGGER.handlers:
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        LOGGER.addHandler(handler)
+    LOGGER.setLevel(logging.DEBUG if verbose else logging.INFO)
+
+
+@contextlib.contextmanager
+def library_output(what: str) -> Iterator[None]:
+    """Catch what a library prints to stdout inside the block and log it at debug level."""
+    buf = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(buf):
+            yield
+    finally:
+        text = buf.getvalue().rstrip()
+        if text:
+            LOGGER.debug("%s:\n%s", what, text)
