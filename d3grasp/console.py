@@ -11,18 +11,48 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import os
+import sys
 from collections.abc import Iterator
 
 LOGGER = logging.getLogger("d3grasp")
 
 __all__ = ["LOGGER", "library_output", "quiet_warp", "set_verbosity"]
 
+# Warp's native library prints this (to the process's stderr, from C) at start-up on every machine
+# without a CUDA driver: on a CPU run it says nothing a user needs.
+_NO_CUDA_DRIVER_LINE = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
+
 
 def quiet_warp() -> None:
-    """Warp prints warnings and errors only (no banner, no module-load lines)."""
+    """Warp prints warnings and errors only (no banner, no module-load lines, no 'no CUDA driver'
+    line on a machine without one); call it before Warp's first use."""
     import warp as wp
 
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    _init_warp_without_driver_line()
+
+
+def _init_warp_without_driver_line() -> None:
+    """``wp.init()`` with the native stderr caught, passed on less the no-CUDA-driver line."""
+    import tempfile
+
+    import warp as wp
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as caught:
+        os.dup2(caught.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        caught.seek(0)
+        text = caught.read().decode(errors="replace")
+    kept = [ln for ln in text.splitlines() if not ln.startswith(_NO_CUDA_DRIVER_LINE)]
+    if kept:
+        print("\n".join(kept), file=sys.stderr)
 
 
 def set_verbosity(verbose: bool) -> None:
