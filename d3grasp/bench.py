@@ -39,7 +39,7 @@ def physics_substep_ms(num_worlds: int) -> float | None:
     substeps = env.cfg.sim.substeps
     env.cfg.sim.substeps = 2  # two substeps keep the state swap even; time per substep = half
     with wp.ScopedDevice(env.wp_device), wp.ScopedCapture() as cap:
-        env._physics()
+        env.physics.substeps()
     env.cfg.sim.substeps = substeps
     graph = cap.graph
     return 0.5 * _median_ms(lambda: wp.capture_launch(graph), repeats=10)
@@ -231,7 +231,7 @@ def _add_env_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("env", help="env-steps/s and physics steps/s, rigid and soft, vs world count")
     p.add_argument("--worlds", type=int, nargs="+", default=[1, 8, 32], help="world counts")
     p.add_argument("--kinds", nargs="+", default=["rigid", "soft"], choices=["rigid", "soft"])
-    from d3grasp.train.cli_args import add_env_override_arg, positive_float
+    from d3grasp.cli.args import add_env_override_arg, positive_float
 
     p.add_argument("--episodes", type=positive_float, default=1.0, help="timed episodes per row (0.5: half)")
     p.add_argument("--device", default="cpu", help="cpu or cuda:N")
@@ -260,7 +260,7 @@ def _cmd_soak(args: argparse.Namespace) -> int:
 
 
 def _add_soak_parser(sub: argparse._SubParsersAction) -> None:
-    from d3grasp.train.cli_args import add_env_override_arg, positive_int
+    from d3grasp.cli.args import add_env_override_arg, positive_int
 
     p = sub.add_parser(
         "soak",

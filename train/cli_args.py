@@ -5,12 +5,17 @@ name them (``--task``, ``--num_envs``, ``--max_iterations``, ``--resume --load_r
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import sys
-from collections.abc import Callable
-from typing import Any
 
+from d3grasp.cli.args import (  # re-exported: the training scripts' names for them
+    add_env_override_arg,
+    non_negative_int,
+    parse_override,
+    positive_float,
+    positive_int,
+    resolve_torch_threads,
+    run_command,
+)
 from d3grasp.envs.config import PERCEPTION_MODES
 from d3grasp.envs.registry import DEFAULT_TASK
 
@@ -28,65 +33,11 @@ __all__ = [
 ]
 
 
-def positive_int(value: str) -> int:
-    """argparse type: an integer >= 1."""
-    n = int(value)
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
-    return n
-
-
-def non_negative_int(value: str) -> int:
-    """argparse type: an integer >= 0."""
-    n = int(value)
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"must be a non-negative integer, got {value}")
-    return n
-
-
-def positive_float(value: str) -> float:
-    """argparse type: a number > 0."""
-    x = float(value)
-    if not x > 0.0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
-    return x
-
-
 def _size(value: str) -> tuple[int, int]:
     w, sep, h = value.lower().partition("x")
     if not sep or not w.isdigit() or not h.isdigit() or int(w) < 8 or int(h) < 8:
         raise argparse.ArgumentTypeError(f"expected WxH in pixels (at least 8x8), got '{value}'")
     return int(w), int(h)
-
-
-def parse_override(text: str) -> tuple[str, Any]:
-    """``"phases.disturb_per_direction=0.1"`` -> ``("phases__disturb_per_direction", 0.1)``.
-
-    The value is read as JSON when it parses (numbers, true/false, lists), else kept as a string.
-    """
-    key, sep, raw = text.partition("=")
-    if not sep or not key.strip():
-        raise argparse.ArgumentTypeError(f"--set expects KEY=VALUE, got '{text}'")
-    try:
-        value: Any = json.loads(raw)
-    except json.JSONDecodeError:
-        value = raw
-    if isinstance(value, list):
-        value = tuple(value)  # config sequences are tuples
-    return key.strip().replace(".", "__"), value
-
-
-def add_env_override_arg(parser: argparse.ArgumentParser, help_text: str) -> None:
-    """``--set KEY=VALUE`` (repeatable): environment config overrides, collected in ``args.overrides``."""
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        type=parse_override,
-        default=[],
-        metavar="KEY=VALUE",
-        help=help_text,
-    )
 
 
 def add_common_args(parser: argparse.ArgumentParser) -> None:
@@ -198,39 +149,3 @@ def make_play_parser() -> argparse.ArgumentParser:
         "--verbose", action="store_true", help="also what Warp and rsl-rl report (module loads, models)"
     )
     return p
-
-
-def resolve_torch_threads(requested: int | None) -> int:
-    """Threads for this process: explicit, else 1.
-
-    One thread per process is the default because the simulation of a rank is one CPU thread and
-    the PPO update of these small networks gains little from more: measured on the 2-core machine
-    with another job running, one process with 2 torch threads took 8.5 s per update at 32 worlds
-    (OpenMP threads spinning against the busy core) against 0.5 s with 1 thread per rank.
-    """
-    return 1 if requested is None else requested
-
-
-def run_command(prog: str, body: Callable[[], int | None], *, one_line: bool = False) -> int:
-    """Run a command's body with the commands' shared error contract.
-
-    A bad task, a checkpoint that does not fit, bad input or a missing file print
-    ``<prog>: error: <reason>`` and exit 2 (``one_line`` folds a multi-line reason onto one line);
-    Ctrl-C prints ``<prog>: aborted`` and exits 130; ``D3GRASP_DEBUG=1`` re-raises for a traceback.
-    """
-    from d3grasp.train.runner import CheckpointError
-
-    from d3grasp.envs.registry import UnknownTaskError
-
-    try:
-        code = body()
-    except (UnknownTaskError, CheckpointError, ValueError, FileNotFoundError) as exc:
-        if os.getenv("D3GRASP_DEBUG"):
-            raise
-        reason = " ".join(str(exc).split()) if one_line else str(exc)
-        print(f"{prog}: error: {reason}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"{prog}: aborted", file=sys.stderr)
-        return 130
-    return 0 if code is None else code

@@ -6,9 +6,10 @@ runner/PPO config that trains it. ``make_train_cfg(task)`` returns the plain dic
 ``obs_normalization`` and a ``distribution_cfg`` on the actor; 2.x-4.x keys such as ``policy`` or
 ``empirical_normalization`` raise errors there).
 
-Why these hyper-parameters (DESIGN.md §6): on a laptop CPU a rollout batch is small (e.g. 32 worlds x
-24 steps = 768 samples). rsl-rl's adaptive learning-rate schedule then sees noisy KL estimates
-and drives the rate to its 1e-5 floor within a few dozen iterations, after which nothing learns.
+Why these hyper-parameters (docs/design.md, Training): on a laptop CPU a rollout batch is small
+(e.g. 32 worlds x 24 steps = 768 samples). rsl-rl's adaptive learning-rate schedule then sees
+noisy KL estimates and drives the rate to its 1e-5 floor within a few dozen iterations, after
+which nothing learns.
 A fixed 3e-4 with 5 epochs x 4 mini-batches and clip 0.2 keeps the per-update policy change
 bounded by the clip instead. The recurrent actor (LSTM 128 -> MLP [128, 64]) sees only what a real
 hand senses (touch, proprioception, phase clock); the critic MLP reads the privileged group too

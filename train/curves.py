@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["load_scalars", "plot_run", "main"]
+from d3grasp.vocabulary import METRICS
 
-_SUCCESS = ("s_grasp", "s_lift", "s_disturb")
+__all__ = ["load_scalars", "plot_run", "main"]
 
 
 def load_scalars(*run_dirs: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -94,7 +94,7 @@ def plot_run(
     ax = axes[1]
     # Episodes finished in each iteration (the weights of that iteration's success rates).
     episodes = dict(zip(*s["Success/episodes"], strict=True)) if "Success/episodes" in s else {}
-    for name, color in zip(_SUCCESS, ("tab:green", "tab:orange", "tab:red"), strict=True):
+    for name, color in zip(METRICS, ("tab:green", "tab:orange", "tab:red"), strict=True):
         tag = f"Success/{name}/all"
         if tag in s:
             it, v = s[tag]

@@ -27,12 +27,15 @@ from d3grasp.train.cli_args import make_play_parser, resolve_torch_threads, run_
 from d3grasp.train.configs import fit_mini_batches, make_train_cfg  # noqa: E402
 from d3grasp.train.export import ExportPaths, LatencyReport, export_policy, measure_latency  # noqa: E402
 from d3grasp.train.runner import D3GraspRunner, EpisodeStats, read_checkpoint  # noqa: E402
-from d3grasp.train.train import DistInfo, load_env_factory, resolve_device, seed_everything  # noqa: E402
+from d3grasp.train.train import DistInfo, load_env_factory, resolve_device  # noqa: E402
 
 from d3grasp.console import library_output, set_verbosity  # noqa: E402
+from d3grasp.controllers import Controller, make_controller  # noqa: E402
 from d3grasp.envs import close_env  # noqa: E402
 from d3grasp.envs.registry import get_task  # noqa: E402
 from d3grasp.policies import BASELINE, resolve_checkpoint  # noqa: E402
+from d3grasp.policies.checkpoint import observation_sizes  # noqa: E402
+from d3grasp.seeding import seed_everything  # noqa: E402
 from d3grasp.viz.rollout import PictureSettings, RolloutPictures  # noqa: E402
 
 __all__ = ["Controller", "PlayResult", "format_episode", "load_runner", "main", "make_controller", "play"]
@@ -88,34 +91,6 @@ def load_runner(env: Any, task: str, checkpoint: Any, device: str, data: dict | 
     return runner
 
 
-@dataclass
-class Controller:
-    """What drives the fingers in play and eval: a checkpoint's deterministic policy or the baseline."""
-
-    act: Callable[[Any], torch.Tensor]  # observations -> actions
-    on_dones: Callable[[torch.Tensor], None]  # called with each step's dones
-    runner: D3GraspRunner | None = None  # the policy's runner (export); None for the baseline
-
-
-def make_controller(
-    env: Any, task: str, checkpoint: Any, device: str, data: dict | None = None
-) -> Controller:
-    """The controller of ``checkpoint`` (a path, or ``"baseline"`` for the rule-based controller)."""
-    if str(checkpoint) == BASELINE:
-        from d3grasp.envs.baseline import RuleBasedController
-
-        # The rule resets a world itself when its episode starts (t = 0).
-        return Controller(RuleBasedController(env).act, lambda dones: None)
-    runner = load_runner(env, task, checkpoint, device, data=data)
-    policy = runner.get_inference_policy(device)
-    policy.reset()
-    return Controller(
-        act=lambda obs: policy(obs.to(device)),
-        on_dones=lambda dones: policy.reset(dones.to(device)),  # fresh LSTM state for new episodes
-        runner=runner,
-    )
-
-
 def play(
     task: str,
     checkpoint: str | os.PathLike[str],
@@ -154,9 +129,8 @@ def play(
         who = "the rule-based baseline" if ckpt is None else f"{ckpt} (iteration {data.get('iter')})"
         log(f"[d3grasp] playing {who} on {task}, {env.num_envs} worlds")
         _rollout(env, controller, episodes, max_steps, pictures, result, log)
-        runner = controller.runner
-        if export and runner is not None:  # the baseline has nothing to export or time
-            actor = runner.alg.get_policy()
+        actor = controller.actor
+        if export and actor is not None:  # the baseline has nothing to export or time
             meta = {
                 "task": task,
                 "checkpoint": ckpt.name,
@@ -164,7 +138,7 @@ def play(
                 "obs_groups": ",".join(actor.obs_groups),
                 "obs_dim": int(actor.obs_dim),
                 "num_actions": int(env.num_actions),
-                "obs_sizes": runner.observation_sizes(),
+                "obs_sizes": observation_sizes(env.get_observations()),
             }
             result.export = export_policy(actor, ckpt.parent / "exported", metadata=meta)
             log(f"[d3grasp] exported {result.export.jit} and {result.export.onnx}")

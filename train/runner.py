@@ -22,13 +22,10 @@ from __future__ import annotations
 
 import contextlib
 import os
-import re
 import signal
-import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")  # rsl_rl imports GitPython; a git binary is optional
@@ -39,6 +36,16 @@ from rsl_rl.utils import check_nan  # noqa: E402
 
 from d3grasp.envs import close_env  # noqa: E402
 from d3grasp.envs.config import policy_interface  # noqa: E402
+from d3grasp.policies.checkpoint import (  # noqa: E402  (re-exported: the runner's checkpoint API)
+    CheckpointError,
+    atomic_torch_save,
+    check_fits,
+    checkpoint_iteration,
+    latest_checkpoint,
+    observation_sizes,
+    read_checkpoint,
+)
+from d3grasp.vocabulary import GRASP_TYPES, KINDS, METRICS, SIZE_BINS  # noqa: E402
 
 __all__ = [
     "CheckpointError",
@@ -51,17 +58,8 @@ __all__ = [
     "read_checkpoint",
 ]
 
-CHECKPOINT_RE = re.compile(r"^model_(\d+)\.pt$")
-
-# Fixed group keys so every rank's outcome counts line up in one all-reduced tensor.
-_KINDS = ("rigid", "deformable")
-_SIZE_BINS = ("small", "medium", "large")
-_GRASP_TYPES = ("top", "side", "pinch")
-_METRICS = ("s_grasp", "s_lift", "s_disturb")
-
-
-class CheckpointError(ValueError):
-    """A checkpoint that is missing, unreadable or trained for different observations."""
+# Group keys come from the fixed vocabulary, so every rank's outcome counts line up in one
+# all-reduced tensor.
 
 
 @dataclass
@@ -84,18 +82,18 @@ class EpisodeStats:
 
     groups: tuple[str, ...] = (
         ("all",)
-        + tuple(f"kind/{k}" for k in _KINDS)
-        + tuple(f"size/{s}" for s in _SIZE_BINS)
-        + tuple(f"grasp/{g}" for g in _GRASP_TYPES)
+        + tuple(f"kind/{k}" for k in KINDS)
+        + tuple(f"size/{s}" for s in SIZE_BINS)
+        + tuple(f"grasp/{g}" for g in GRASP_TYPES)
     )
 
     def __init__(self) -> None:
-        self.counts = torch.zeros(len(self.groups), 1 + len(_METRICS), dtype=torch.float64)
+        self.counts = torch.zeros(len(self.groups), 1 + len(METRICS), dtype=torch.float64)
         self._index = {g: i for i, g in enumerate(self.groups)}
 
     def add(self, episodes: list[dict[str, Any]]) -> None:
         for ep in episodes:
-            row = torch.tensor([1.0] + [float(bool(ep.get(m, False))) for m in _METRICS], dtype=torch.float64)
+            row = torch.tensor([1.0] + [float(bool(ep.get(m, False))) for m in METRICS], dtype=torch.float64)
             keys = [
                 "all",
                 f"kind/{ep.get('kind')}",
@@ -117,82 +115,13 @@ class EpisodeStats:
         for i, group in enumerate(self.groups):
             n = float(self.counts[i, 0])
             if n > 0:
-                for j, m in enumerate(_METRICS):
+                for j, m in enumerate(METRICS):
                     out[f"Success/{m}/{group}"] = float(self.counts[i, 1 + j]) / n
         out["Success/episodes"] = float(self.counts[0, 0])
         return out
 
     def clear(self) -> None:
         self.counts.zero_()
-
-
-def _umask() -> int:
-    """The process umask (only readable by setting it: set and restore at once)."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def atomic_torch_save(obj: Any, path: str | os.PathLike[str]) -> None:
-    """``torch.save`` that never leaves a truncated file at ``path``: temp file, fsync, rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        # mkstemp makes the file owner-only (0600); a checkpoint gets a plain file's mode instead.
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    # Make the rename itself durable (the directory entry).
-    with contextlib.suppress(OSError):
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-
-
-def checkpoint_iteration(path: str | os.PathLike[str]) -> int | None:
-    m = CHECKPOINT_RE.match(Path(path).name)
-    return int(m.group(1)) if m else None
-
-
-def latest_checkpoint(run_dir: str | os.PathLike[str], pattern: str | None = None) -> Path:
-    """The checkpoint with the highest iteration in ``run_dir`` (optionally names matching a regex)."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise CheckpointError(f"run folder not found: {run_dir}")
-    rx = re.compile(pattern) if pattern else None
-    found = [
-        p
-        for p in run_dir.iterdir()
-        if p.is_file() and CHECKPOINT_RE.match(p.name) and (rx is None or rx.fullmatch(p.name))
-    ]
-    if not found:
-        what = f"matching '{pattern}' " if pattern else ""
-        raise CheckpointError(f"no checkpoint model_<N>.pt {what}in {run_dir}")
-    return max(found, key=lambda p: checkpoint_iteration(p) or 0)
-
-
-def read_checkpoint(path: str | os.PathLike[str], map_location: str = "cpu") -> dict[str, Any]:
-    """Load a checkpoint dict, turning a missing or unreadable file into a one-line ``CheckpointError``."""
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path}")
-    try:
-        data = torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as exc:  # pickle / zip errors have many types
-        raise CheckpointError(f"cannot read checkpoint {path}: {type(exc).__name__}: {exc}") from None
-    if not isinstance(data, dict) or "actor_state_dict" not in data:
-        raise CheckpointError(f"{path} is not an rsl-rl 5.x checkpoint (no 'actor_state_dict')")
-    return data
 
 
 class _StopFlag:
@@ -465,9 +394,7 @@ class D3GraspRunner(OnPolicyRunner):
 
     # ----------------------------------------------------------------- checkpoints
     def observation_sizes(self) -> dict[str, int]:
-        obs = self.env.get_observations()
-        # TensorDict iterates over its batch dimension, not its keys: .keys() is needed.
-        return {str(k): int(obs[k].shape[-1]) for k in obs.keys()}  # noqa: SIM118
+        return observation_sizes(self.env.get_observations())
 
     def env_policy_interface(self) -> dict[str, Any] | None:
         """How this env turns actions into joint targets (``d3grasp.envs.config.POLICY_INTERFACE``)."""
@@ -499,43 +426,19 @@ class D3GraspRunner(OnPolicyRunner):
         self.logger.save_model(path, self.current_learning_iteration)
 
     def check_compatible(self, infos: dict[str, Any] | None, path: str, models: tuple[str, ...]) -> None:
-        """Raise ``CheckpointError`` if the checkpoint's models read observations of other sizes."""
+        """Raise ``CheckpointError`` if the checkpoint does not fit this runner's environment."""
         if not infos or "obs_sizes" not in infos:
             return  # a foreign rsl-rl checkpoint: load_state_dict will judge the shapes
-        mine = self.observation_sizes()
-        theirs = infos["obs_sizes"]
-        groups = {g for m in models for g in infos.get("obs_groups", {}).get(m, theirs)}
-        for model in models:
-            groups |= set(self.cfg["obs_groups"].get(model, []))
-        diff = {g: (theirs.get(g), mine.get(g)) for g in sorted(groups) if theirs.get(g) != mine.get(g)}
-        ckpt_actions = infos.get("num_actions", self.env.num_actions)
-        if diff or ckpt_actions != self.env.num_actions:
-            sizes = ", ".join(f"'{g}' {a} vs {b}" for g, (a, b) in diff.items())
-            if ckpt_actions != self.env.num_actions:
-                sizes += f"{', ' if sizes else ''}actions {ckpt_actions} vs {self.env.num_actions}"
-            raise CheckpointError(
-                f"checkpoint {path} was trained on task '{infos.get('task')}' and does not fit task "
-                f"'{self.task_name}' (checkpoint vs environment sizes: {sizes})"
-            )
-        self._check_policy_interface(infos.get("policy_interface"), path)
-        if infos.get("task") and self.task_name and infos["task"] != self.task_name:
-            print(
-                f"[d3grasp] note: checkpoint trained on '{infos['task']}', running it on '{self.task_name}'"
-            )
-
-    def _check_policy_interface(self, theirs: dict[str, Any] | None, path: str) -> None:
-        """Refuse a checkpoint trained with other action-to-target settings (same sizes, other meaning)."""
-        mine = self.env_policy_interface()
-        if not theirs or mine is None:
-            return  # checkpoints from before the record, or an env without a GraspEnvConfig
-        diff = {k: (v, mine[k]) for k, v in theirs.items() if k in mine and mine[k] != v}
-        if diff:
-            given = ", ".join(f"{k}={a!r} (environment: {b!r})" for k, (a, b) in diff.items())
-            fix = " ".join(f"--set {k}={a}" for k, (a, _) in diff.items())
-            raise CheckpointError(
-                f"checkpoint {path} was trained with {given}: its actions mean something else in this "
-                f"environment; build it as trained ({fix})"
-            )
+        check_fits(
+            infos,
+            path,
+            task=self.task_name,
+            obs_sizes=self.observation_sizes(),
+            obs_groups=self.cfg["obs_groups"],
+            num_actions=int(self.env.num_actions),
+            policy_interface=self.env_policy_interface(),
+            models=models,
+        )
 
     def load(
         self,

@@ -20,7 +20,6 @@ import importlib
 import importlib.util
 import json
 import os
-import random
 import re
 import sys
 from collections.abc import Callable, Sequence
@@ -29,7 +28,6 @@ from typing import Any
 
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from d3grasp.train.cli_args import make_train_parser, resolve_torch_threads, run_command  # noqa: E402
 from d3grasp.train.configs import fit_mini_batches, make_train_cfg  # noqa: E402
@@ -37,6 +35,7 @@ from d3grasp.train.runner import CheckpointError, D3GraspRunner, latest_checkpoi
 
 from d3grasp.envs import close_env  # noqa: E402
 from d3grasp.envs.registry import get_task  # noqa: E402
+from d3grasp.seeding import seed_everything
 
 __all__ = ["DistInfo", "load_env_factory", "main", "resolve_device", "resume_checkpoint", "run_training"]
 
@@ -86,12 +85,6 @@ def load_env_factory(spec: str) -> Callable[..., Any]:
     if not callable(fn):
         raise ValueError(f"--env_factory: '{module_name}' has no callable '{attr}'")
     return fn
-
-
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)
 
 
 def resume_checkpoint(experiment_dir: Path, load_run: str | None, checkpoint: str | None) -> Path:

@@ -28,41 +28,25 @@ from typing import Any
 import numpy as np
 
 from d3grasp.authoring.precision import export_layer
+from d3grasp.dexhand13 import (  # noqa: F401  (re-exported: the authoring API names them too)
+    FINGER_JOINT_NAMES,
+    FINGERS,
+    LINK_NAMES,
+    PAD_NAMES,
+    PALM_LINK,
+    ROOT_JOINT_NAMES,
+    ROOT_LINK_NAMES,
+    pad_finger,
+    pad_groups,
+)
 
 # --------------------------------------------------------------------------------------------
-# Names and fixed orders (the environment, the tactile kernel and the rewards index with these).
+# Names and fixed orders live in d3grasp.dexhand13 (the environment, the tactile kernel and the
+# rewards index with them); the USD writer's own names follow.
 # --------------------------------------------------------------------------------------------
 
 HAND_PRIM = "/dexhand13"
 """Path of the hand's root Xform (default prim, carries ``ArticulationRootAPI``)."""
-
-FINGERS: tuple[str, ...] = ("index", "middle", "ring", "thumb")
-
-FINGER_JOINT_NAMES: tuple[str, ...] = tuple(f"right_{f}_joint_{i}" for f in FINGERS for i in range(4))
-"""The 16 actuated finger joints, index 0..3, middle 0..3, ring 0..3, thumb 0..3 (the policy's order)."""
-
-ROOT_JOINT_NAMES: tuple[str, ...] = ("root_x", "root_y", "root_z", "root_rz", "root_ry", "root_rx")
-"""The driven 6-DoF root chain, world to palm, in chain order."""
-
-ROOT_LINK_NAMES: tuple[str, ...] = (
-    "root_x_link",
-    "root_y_link",
-    "root_z_link",
-    "root_rz_link",
-    "root_ry_link",
-)
-"""Massive but collider-free intermediate bodies of the root chain (children of the first five joints)."""
-
-PALM_LINK = "right_palm_link"
-
-LINK_NAMES: tuple[str, ...] = (PALM_LINK,) + tuple(f"right_{f}_link_{i}" for f in FINGERS for i in range(4))
-"""The 17 hand links of the spec (palm first, then each finger's links 0..3)."""
-
-PAD_NAMES: tuple[str, ...] = tuple(f"right_{f}_tactile_link_{i}" for f in FINGERS[:3] for i in range(3)) + (
-    "right_thumb_tactile_link_0",
-    "right_thumb_tactile_link_1",
-)
-"""The 11 tactile pads, index 0,1,2, middle 0,1,2, ring 0,1,2, thumb 0,1 (proximal to distal)."""
 
 PAD_NORMAL_AXIS = 2
 """Axis of the pad frame that is the sensing normal: +z points out of the finger towards the object."""
@@ -78,22 +62,6 @@ PAD_COLLIDER = "pad"
 
 LINK_COLLIDER = "collision"
 """Name of the box collider prim below each link prim that has one."""
-
-
-def pad_finger(pad: str | int) -> str:
-    """Finger (``"index"``, ``"middle"``, ``"ring"`` or ``"thumb"``) that carries a pad (name or index)."""
-    name = PAD_NAMES[pad] if isinstance(pad, int) else pad
-    for finger in FINGERS:
-        if name.startswith(f"right_{finger}_tactile_link_"):
-            return finger
-    raise ValueError(f"unknown pad {pad!r}; expected one of {PAD_NAMES}")
-
-
-def pad_groups() -> dict[str, list[int]]:
-    """Pad indices (into :data:`PAD_NAMES`) of the thumb and of the opposing fingers, for rewards."""
-    thumb = [i for i, p in enumerate(PAD_NAMES) if pad_finger(p) == "thumb"]
-    fingers = [i for i, p in enumerate(PAD_NAMES) if pad_finger(p) != "thumb"]
-    return {"thumb": thumb, "fingers": fingers}
 
 
 # --------------------------------------------------------------------------------------------
@@ -208,7 +176,7 @@ class HandPhysics:
     in each long finger and 155 g in the thumb: 1.10 kg in all. Each body's inertia is that of a
     solid box of its mass filling the spec's link box, centred on the box (principal axes = link axes).
 
-    Drives: finger ke 20 N·m/rad, kd 0.5. The DESIGN.md value (ke 2, kd 0.05) let the thumb base
+    Drives: finger ke 20 N·m/rad, kd 0.5. The first prototype's value (ke 2, kd 0.05) let the thumb base
     (joints 0 and 1 share a pivot through the light abduction carrier) lag 0.4 rad, overshoot its
     limit and drift at ~1 Hz under SolverVBD at 5 iterations, with or without gravity; at ke 20 every
     finger joint holds its target within ~0.01 rad. Root gains make the palm a stiff positioner:

@@ -24,19 +24,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 from d3grasp.authoring.precision import stable_json
+from d3grasp.vocabulary import SIZE_BINS
 
 MANIFEST_FORMAT = "d3grasp-manifest"
 MANIFEST_VERSION = 1
-
-# Size bins by the longest side of the object's axis-aligned bounding box in its rest frame, in
-# metres. Lower bound inclusive, upper bound exclusive (the last bin includes its upper bound).
-# The DexHand13 spans ~0.14 m from thumb base to finger tips, so 20 cm is the largest object it
-# can wrap; below 3 cm the pads (2.3-3.5 cm) cannot get two opposing contacts.
-SIZE_BINS: dict[str, tuple[float, float]] = {
-    "small": (0.03, 0.06),
-    "medium": (0.06, 0.12),
-    "large": (0.12, 0.20),
-}
 
 AssetKind = Literal["rigid", "deformable"]
 

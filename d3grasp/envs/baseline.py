@@ -9,24 +9,35 @@ which is what an under-actuated gripper does mechanically; ``per_joint=False`` s
 finger at its first touch instead. A stopped joint keeps a small extra squeeze (``squeeze`` rad
 beyond where it stopped, i.e. ``squeeze * ke`` of drive torque) and holds it through lift, hold and
 disturbance. Abduction joints stay at the middle of their range; fingers the grasp type does not
-use stay open. It acts through the same action interface as a policy (normalised joint targets),
-so it runs wherever a policy does. The thumb's first flexion link carries no pad: its joint stops
-with the thumb's pads.
+use stay open. The thumb's first flexion link carries no pad: its joint stops with the thumb's pads.
+
+:func:`rule_step` is the rule as a function of tensors (pad forces, joint positions, whether the
+hand is closing, the grasp type) with its state in :class:`RuleState`; it knows nothing of the
+environment. :class:`RuleBasedController` runs it on an environment's sensor readings and acts
+through the same interface as a policy (normalised joint targets), so it runs wherever a policy
+does. It reads the pad sensors directly rather than the observation: the proprioception-only
+ablation's observation has no touch, and the baseline needs it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
-from d3grasp.envs.grasp_env import NUM_FINGER_JOINTS, NUM_PADS, PHASES, GraspEnv
-from d3grasp.envs.grasps import GRASP_NAMES, GRASP_TYPES
-
-# Pads per finger and the link (1..3) each sits on (hand.PAD_NAMES order).
-FINGER_PADS: tuple[tuple[int, ...], ...] = ((0, 1, 2), (3, 4, 5), (6, 7, 8), (9, 10))
-PAD_LINK: tuple[int, ...] = (1, 2, 3, 1, 2, 3, 1, 2, 3, 2, 3)
-FLEXION_JOINTS: tuple[int, ...] = (1, 2, 3, 5, 6, 7, 9, 10, 11, 13, 14, 15)
+from d3grasp.dexhand13 import (
+    ABDUCTION_JOINTS,
+    FINGER_PADS,
+    FLEXION_JOINTS,
+    JOINTS_PER_FINGER,
+    NUM_FINGER_JOINTS,
+    NUM_PADS,
+    PAD_LINK,
+    finger_joints,
+)
+from d3grasp.envs.grasps import GRASPS
+from d3grasp.vocabulary import GRASP_TYPES, PHASES
 
 
 @dataclass
@@ -41,40 +52,120 @@ def stop_matrix(per_joint: bool = True) -> torch.Tensor:
     """(16, 11) bool: which pads stop which finger joint (abduction joints never stop: never advance)."""
     s = torch.zeros(NUM_FINGER_JOINTS, NUM_PADS, dtype=torch.bool)
     for f, pads in enumerate(FINGER_PADS):
-        for j in (1, 2, 3):
+        for j in range(1, JOINTS_PER_FINGER):
             for p in pads:
                 if not per_joint or PAD_LINK[p] >= j:
-                    s[4 * f + j, p] = True
+                    s[JOINTS_PER_FINGER * f + j, p] = True
     return s
 
 
-class RuleBasedController:
-    """Tactile-triggered constant-speed closing; ``act(obs)`` returns actions like a policy."""
+def grasp_closing_joints() -> torch.Tensor:
+    """(grasp types, 16) bool: the flexion joints each grasp type closes (its ``baseline_fingers``)."""
+    uses = torch.zeros(len(GRASP_TYPES), NUM_FINGER_JOINTS, dtype=torch.bool)
+    for g, name in enumerate(GRASP_TYPES):
+        for f in GRASPS[name].baseline_fingers:
+            uses[g, list(finger_joints(f))] = True
+    flex = torch.zeros(NUM_FINGER_JOINTS, dtype=torch.bool)
+    flex[list(FLEXION_JOINTS)] = True
+    return uses & flex
 
-    def __init__(self, env: GraspEnv, cfg: BaselineConfig | None = None) -> None:
+
+def rest_targets(lower: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
+    """(16,) the open hand the rule starts from: flexion at the lower limit, abduction centred."""
+    rest = lower.clone()
+    abd = list(ABDUCTION_JOINTS)
+    rest[abd] = (0.5 * (lower + upper))[abd]
+    return rest
+
+
+@dataclass
+class RuleState:
+    """Per world: the joint targets and which joints have stopped on touch."""
+
+    target: torch.Tensor  # (W, 16) rad
+    stopped: torch.Tensor  # (W, 16) bool
+
+    @classmethod
+    def open(cls, num_worlds: int, rest: torch.Tensor) -> RuleState:
+        return cls(
+            target=rest.expand(num_worlds, -1).clone(),
+            stopped=torch.zeros(num_worlds, NUM_FINGER_JOINTS, dtype=torch.bool, device=rest.device),
+        )
+
+    def restart(self, worlds: torch.Tensor, rest: torch.Tensor) -> None:
+        self.target[worlds] = rest
+        self.stopped[worlds] = False
+
+
+@dataclass(frozen=True)
+class RuleTables:
+    """The rule's fixed tables on a device: what stops what, and what each grasp type closes."""
+
+    stops: torch.Tensor  # (16, 11) float
+    grasp_uses: torch.Tensor  # (grasp types, 16) bool
+    upper: torch.Tensor  # (16,) joint upper limits
+
+    @classmethod
+    def make(cls, cfg: BaselineConfig, upper: torch.Tensor) -> RuleTables:
+        dev = upper.device
+        return cls(stop_matrix(cfg.per_joint).to(dev).float(), grasp_closing_joints().to(dev), upper)
+
+
+def rule_step(
+    state: RuleState,
+    tables: RuleTables,
+    cfg: BaselineConfig,
+    pad_force: torch.Tensor,
+    joint_q: torch.Tensor,
+    closing: torch.Tensor,
+    grasp_id: torch.Tensor,
+    dt: float,
+) -> torch.Tensor:
+    """Advance the rule by one control step of ``dt`` s and return the joint targets (W, 16).
+
+    ``pad_force`` (W, 11, 3) the pad readings (N), ``joint_q`` (W, 16) the joint positions,
+    ``closing`` (W,) whether the grasp phase has begun, ``grasp_id`` (W,) the grasp type.
+    """
+    force = torch.linalg.norm(pad_force, dim=-1)  # (W, 11)
+    touched = (force > cfg.force_threshold).float() @ tables.stops.T > 0  # (W, 16)
+    uses = tables.grasp_uses[grasp_id]
+    newly = touched & uses & ~state.stopped & closing[:, None]
+    if newly.any():
+        # Hold a stopping joint where it is now, plus the squeeze.
+        squeezed = torch.minimum(joint_q + cfg.squeeze, tables.upper)
+        state.target = torch.where(newly, squeezed, state.target)
+    state.stopped |= newly
+    advance = closing[:, None] & uses & ~state.stopped
+    step = cfg.close_speed * dt
+    state.target = torch.where(advance, torch.minimum(state.target + step, tables.upper), state.target)
+    return state.target
+
+
+class RuleBasedController:
+    """The rule on an environment's readings; ``act(obs)`` returns actions like a policy.
+
+    ``env`` is any object with the environment's readings (``t_pad_force``, ``t_joint_q`` with
+    ``i_finger_q``, ``episode_length_buf``, ``phase_of``, ``grasp_id``, ``dt``, joint limits
+    ``lower`` / ``upper``, ``normalize_joints``); in the residual action modes the environment runs
+    the rule itself (``env.residual_base``) and this controller's actions are the zero residual.
+    """
+
+    def __init__(self, env: Any, cfg: BaselineConfig | None = None) -> None:
         self.env = env
         self.cfg = cfg or BaselineConfig()
-        W, dev = env.num_envs, env.torch_device
-        self.target = env.lower.expand(W, -1).clone()
-        self.stopped = torch.zeros(W, NUM_FINGER_JOINTS, dtype=torch.bool, device=dev)
-        mid = 0.5 * (env.lower + env.upper)
-        self.rest = env.lower.clone()
-        self.rest[[0, 4, 8, 12]] = mid[[0, 4, 8, 12]]  # abduction joints centred
-        self.flex = torch.zeros(NUM_FINGER_JOINTS, dtype=torch.bool, device=dev)
-        self.flex[list(FLEXION_JOINTS)] = True
-        self.stops = stop_matrix(self.cfg.per_joint).to(dev).float()
-        uses = torch.zeros(len(GRASP_NAMES), NUM_FINGER_JOINTS, dtype=torch.bool, device=dev)
-        for g, name in enumerate(GRASP_NAMES):
-            for f in GRASP_TYPES[name].baseline_fingers:
-                uses[g, 4 * f : 4 * f + 4] = True
-        self.grasp_uses = uses & self.flex
+        self.rest = rest_targets(env.lower, env.upper)
+        self.tables = RuleTables.make(self.cfg, env.upper)
+        self.state = RuleState.open(env.num_envs, env.lower)  # every world restarts at its first step
+
+    @property
+    def target(self) -> torch.Tensor:
+        return self.state.target
 
     def reset(self, env_ids: torch.Tensor) -> None:
-        self.target[env_ids] = self.rest
-        self.stopped[env_ids] = False
+        self.state.restart(env_ids, self.rest)
 
     def act(self, obs: object = None) -> torch.Tensor:
-        env, cfg = self.env, self.cfg
+        env = self.env
         if env.residual_base is not None and env.residual_base is not self:
             # A residual-mode env already runs this rule inside: the baseline is the zero residual.
             return torch.zeros(env.num_envs, env.num_actions, device=env.torch_device)
@@ -83,17 +174,14 @@ class RuleBasedController:
         if fresh.any():
             self.reset(torch.nonzero(fresh).flatten())
         closing = env.phase_of(t) >= PHASES.index("grasp")
-        force = torch.linalg.norm(env.t_pad_force, dim=-1)  # (W, 11), the sensor reading
-        touched = (force > cfg.force_threshold).float() @ self.stops.T > 0  # (W, 16)
-        uses = self.grasp_uses[env.grasp_id]
-        newly = touched & uses & ~self.stopped & closing[:, None]
-        if newly.any():
-            # Hold a stopping joint where it is now, plus the squeeze.
-            q = env.t_joint_q[env.i_finger_q]
-            squeezed = torch.minimum(q + cfg.squeeze, env.upper)
-            self.target = torch.where(newly, squeezed, self.target)
-        self.stopped |= newly
-        advance = closing[:, None] & uses & ~self.stopped
-        step = cfg.close_speed * env.dt
-        self.target = torch.where(advance, torch.minimum(self.target + step, env.upper), self.target)
-        return env.normalize_joints(self.target)
+        target = rule_step(
+            self.state,
+            self.tables,
+            self.cfg,
+            env.t_pad_force,
+            env.t_joint_q[env.i_finger_q],
+            closing,
+            env.grasp_id,
+            env.dt,
+        )
+        return env.normalize_joints(target)

@@ -29,15 +29,16 @@ TASK_BY_KIND = {"rigid": "D3Grasp-DexHand13-Diverse-v0", "soft": "D3Grasp-DexHan
 def _timed_physics_launch(env, physics_s: list[float]) -> Callable[[], None]:
     """The env's captured control step as two graphs, physics then sensors, the physics timed.
 
-    The same kernels in the same order as the env's own graph (``_control_step`` = ``_physics`` then
-    ``_sensors``): only the split is new, so the episode is the one the env would run.
+    The same kernels in the same order as the env's own graph (``_control_step`` = the physics
+    substeps then the sensors' update): only the split is new, so the episode is the one the env
+    would run.
     """
     device = env.wp_device
     with wp.ScopedDevice(device), wp.ScopedCapture() as cap:
-        env._physics()
+        env.physics.substeps()
     physics_graph = cap.graph
     with wp.ScopedDevice(device), wp.ScopedCapture() as cap:
-        env._sensors()
+        env.sensors.update(env.state_0, env.contacts, env.observables)
     sensors_graph = cap.graph
 
     def launch() -> None:

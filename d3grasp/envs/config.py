@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 from d3grasp.kernels.rewards import RewardConfig
 from d3grasp.kernels.tactile import TactileConfig
+from d3grasp.vocabulary import GRASP_TYPES as VOCABULARY_GRASP_TYPES
+from d3grasp.vocabulary import KINDS, SIZE_BINS
 
 ACTION_MODES: tuple[str, ...] = ("residual", "synergy", "absolute")
 """How the actions in [-1, 1] (16, or 4 in synergy mode) become joint targets. ``absolute`` (the paper's):
@@ -25,15 +27,15 @@ rate from 19% to 31%, a change the 4 squeeze actions express; PPO in the 16-join
 episodes per iteration on 2 CPU cores) learned that direction but stayed level with the baseline after 800
 iterations."""
 
-GRASP_TYPES: tuple[str, ...] = ("top", "side", "pinch")
-"""The three archetypal grasp types (the paper's directional diversity of 3): top power grasp
-(palm down over the object), side wrap (palm facing the object from the side) and precision
-pinch (index and thumb tips from above)."""
+# The three archetypal grasp types (the paper's directional diversity of 3): top power grasp (palm
+# down over the object), side wrap (palm facing the object from the side) and precision pinch
+# (index and thumb tips from above); d3grasp.envs.grasps derives their poses.
+GRASP_TYPES = VOCABULARY_GRASP_TYPES
 
 
 @dataclass
 class SimConfig:
-    """Newton / SolverVBD settings (DESIGN.md §2: what holds a grasp on this stack)."""
+    """Newton / SolverVBD settings (docs/design.md, Simulation: what holds a grasp on this stack)."""
 
     control_hz: float = 60.0
     substeps: int = 10  # even; 8 (with collide_every=2) is the fast profile, 4-6 lose most grasps
@@ -81,16 +83,27 @@ class ObjectSetConfig:
     """Which objects the worlds hold."""
 
     manifest: str | None = None  # None = the shipped library
-    kinds: tuple[str, ...] = ("rigid", "deformable")
+    kinds: tuple[str, ...] = KINDS
     split: str = "train"  # train | test | all
-    size_bins: tuple[str, ...] = ("small", "medium", "large")
+    size_bins: tuple[str, ...] = tuple(SIZE_BINS)
     ids: tuple[str, ...] | None = None  # explicit asset ids (overrides the filters above)
     soft_fraction: float = 0.5  # share of worlds given a soft object when both kinds are enabled
 
 
 @dataclass
 class ObservationConfig:
+    """What the observation groups hold and the scales that bring each term to O(1) for the
+    networks (``d3grasp.envs.mdp.observations`` names the terms). A "per unit" figure divides."""
+
     action_history: int = 3  # last k actions in the policy observation
+    pad_force_per_unit: float = 10.0  # N: pad forces (read and true) / 10
+    joint_vel_scale: float = 0.1  # finger joint velocities (rad/s) x 0.1
+    palm_offset_scale: float = 10.0  # palm command relative to the grasp pose (m) x 10
+    object_offset_scale: float = 10.0  # privileged: object relative to the palm (m) x 10
+    object_ang_vel_scale: float = 0.1  # privileged: object angular velocity (rad/s) x 0.1
+    link_distance_scale: float = 10.0  # privileged: hand link to object distances (m) x 10
+    sigma_scale: float = 100.0  # privileged: the deformable rotation's sigma (m^2) x 100
+    log_youngs_per_unit: float = 6.0  # privileged: log10 of Young's modulus (Pa) / 6
 
 
 @dataclass

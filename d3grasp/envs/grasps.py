@@ -18,8 +18,9 @@ y -0.18) and swings under the front of the palm: tip near (0.12-0.16, -0.04..-0.
 * ``pinch`` (precision, palm down): the object under the front of the palm between the thumb
   tip and the index/middle tips, which meet near (0.12, -0.033, 0.05) when closed.
 
-Measured (rule-based baseline, per-joint stopping, randomisation off, one episode per object,
-``python /tmp/g4/ev.py IDS TYPE``; lift = s_lift, 16 train objects: 5 small, 7 medium, 4 large):
+Measured (rule-based baseline, per-joint stopping, randomisation off, one episode per object and
+type forced, as ``d3grasp-eval --checkpoint baseline --grasp-types TYPE`` runs it; lift = s_lift,
+16 train objects: 5 small, 7 medium, 4 large):
 
 ==========  =============  ==============  ============  ===========
 type        small          medium          large         all
@@ -50,6 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from d3grasp.authoring.hand import matrix_to_quat_xyzw
+from d3grasp.vocabulary import GRASP_TYPES
 
 PALM_FRONT_X = 0.138  # palm collider front face (m, palm frame)
 PALM_HALF_WIDTH = 0.0515  # palm collider half-extent along y (m)
@@ -66,7 +68,7 @@ class GraspType:
     palm_vertical: bool = False
 
 
-GRASP_TYPES: dict[str, GraspType] = {
+GRASPS: dict[str, GraspType] = {
     "top": GraspType(
         "top", near_face_x=PALM_FRONT_X + 0.002, lateral_y=-0.02, top_z=0.017, baseline_fingers=(0, 1, 2, 3)
     ),
@@ -80,7 +82,7 @@ GRASP_TYPES: dict[str, GraspType] = {
     ),
     "pinch": GraspType("pinch", near_face_x=0.10, lateral_y=-0.033, top_z=0.035, baseline_fingers=(0, 1, 3)),
 }
-GRASP_NAMES: tuple[str, ...] = tuple(GRASP_TYPES)
+assert tuple(GRASPS) == GRASP_TYPES  # the vocabulary's order is the grasp id of observations and logs
 
 # Palm orientation for zero yaw: columns are the palm's x, y, z axes in the world.
 _R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # palm faces -z
@@ -105,7 +107,7 @@ class GraspPose:
 def side_feasible(extents: np.ndarray, table_height: float = 0.0) -> bool:
     """Whether the side wrap can reach the object without the hand's lower edge meeting the table."""
     obj_z = table_height + 0.5 * float(extents[2])
-    lateral = max(GRASP_TYPES["side"].lateral_y, PALM_HALF_WIDTH + TABLE_CLEARANCE - (obj_z - table_height))
+    lateral = max(GRASPS["side"].lateral_y, PALM_HALF_WIDTH + TABLE_CLEARANCE - (obj_z - table_height))
     return lateral <= 0.03
 
 
@@ -145,7 +147,7 @@ def grasp_pose(
     The palm's x axis is aligned with the object's shorter horizontal side, so the fingers wrap
     its narrow dimension.
     """
-    g = GRASP_TYPES[grasp]
+    g = GRASPS[grasp]
     ex = np.asarray(extents, dtype=np.float64)
     short_is_x = ex[0] <= ex[1]
     along = ex[0] if short_is_x else ex[1]  # extent along the palm's x

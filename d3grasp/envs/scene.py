@@ -13,6 +13,7 @@ type's orientation stays well inside ±π/2.
 
 from __future__ import annotations
 
+from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +22,10 @@ import numpy as np
 import warp as wp
 
 from d3grasp.authoring import hand as hand_def
-from d3grasp.authoring.manifest import AssetEntry
+from d3grasp.authoring.manifest import AssetEntry, read_manifest
+from d3grasp.dexhand13 import LINK_NAMES
+from d3grasp.envs.config import ObjectSetConfig
+from d3grasp.paths import default_manifest
 
 HAND_ANCHOR_QUAT = (1.0, 0.0, 0.0, 0.0)
 """Rotation (x, y, z, w) of the root chain's anchor: π about world x, so the palm faces down."""
@@ -65,7 +69,7 @@ class SceneLayout:
     root_dof: np.ndarray  # (W, 6)
     kinematic_palm: bool  # palm prescribed each substep (no root chain)
     palm_body: np.ndarray  # (W,)
-    link_bodies: np.ndarray  # (W, 17) palm + finger links, hand_def.LINK_NAMES order
+    link_bodies: np.ndarray  # (W, 17) palm + finger links, dexhand13.LINK_NAMES order
     hand_shapes: list[np.ndarray]  # per world, every collision shape of the hand
     pad_shapes: np.ndarray  # (W, 11)
     object_shapes: list[np.ndarray]  # per world, collision shapes of a rigid object (empty for soft)
@@ -102,87 +106,140 @@ def build_scene(
         if kinematic_palm
         else wp.transform(wp.vec3(0.0, 0.0, 0.0), wp.quat(*HAND_ANCHOR_QUAT))
     )
-
-    kinds, obj_body, obj_jq, obj_jqd = [], [], [], []
-    p_start, p_count, t_start, t_count = [], [], [], []
-    finger_q, finger_dof, root_q, root_dof, palm, links, pads = [], [], [], [], [], [], []
-    hand_shapes, object_shapes = [], []
-    for entry, usd_path in entries:
-        builder.begin_world(label=f"world_{len(kinds)}")
-        hand = hand_def.add_hand(builder, xform=anchor, kinematic_palm=kinematic_palm)
-        finger_q.append(hand.finger_q)
-        finger_dof.append(hand.finger_dof)
-        root_q.append(hand.root_q)
-        root_dof.append(hand.root_dof)
-        palm.append(hand.palm_body)
-        links.append([hand.link_bodies[n] for n in hand_def.LINK_NAMES])
-        pads.append(hand.pad_shapes)
-        hand_shapes.append(np.arange(*hand.shape_range, dtype=np.int32))
-
-        b0, j0, s0 = builder.body_count, builder.joint_count, builder.shape_count
-        n0, t0 = builder.particle_count, builder.tet_count
-        try:
-            builder.add_usd(str(usd_path), xform=wp.transform_identity())
-        except Exception as exc:  # a broken asset must name itself
-            raise ValueError(f"{usd_path}: cannot load object '{entry.id}' ({exc})") from exc
-        b1, j1, s1 = builder.body_count, builder.joint_count, builder.shape_count
-        n1, t1 = builder.particle_count, builder.tet_count
-        if entry.kind == "rigid":
-            if b1 - b0 != 1 or j1 - j0 != 1:
-                raise ValueError(
-                    f"{usd_path}: rigid object must add one body and one free joint, "
-                    f"added {b1 - b0} bodies and {j1 - j0} joints"
-                )
-            kinds.append(OBJECT_RIGID)
-            obj_body.append(b0)
-            obj_jq.append(builder.joint_q_start[j0])
-            obj_jqd.append(builder.joint_qd_start[j0])
-            object_shapes.append(np.arange(s0, s1, dtype=np.int32))
-        else:
-            if n1 == n0 or t1 == t0:
-                raise ValueError(f"{usd_path}: soft object added no particles or tets")
-            kinds.append(OBJECT_SOFT)
-            obj_body.append(-1)
-            obj_jq.append(-1)
-            obj_jqd.append(-1)
-            object_shapes.append(np.zeros(0, dtype=np.int32))
-        p_start.append(n0)
-        p_count.append(n1 - n0)
-        t_start.append(t0)
-        t_count.append(t1 - t0)
+    rows: dict[str, list] = defaultdict(list)  # one row per world of every SceneLayout array
+    for w, (entry, usd_path) in enumerate(entries):
+        builder.begin_world(label=f"world_{w}")
+        _add_hand(builder, rows, anchor, kinematic_palm)
+        _add_object(builder, rows, entry, usd_path)
         builder.end_world()
-
     builder.color()
     model = builder.finalize(device=device)
+    return model, _layout(model, rows, [e for e, _ in entries], kinematic_palm)
 
+
+def _add_hand(builder: newton.ModelBuilder, rows: dict[str, list], anchor, kinematic_palm: bool) -> None:
+    hand = hand_def.add_hand(builder, xform=anchor, kinematic_palm=kinematic_palm)
+    rows["finger_q"].append(hand.finger_q)
+    rows["finger_dof"].append(hand.finger_dof)
+    rows["root_q"].append(hand.root_q)
+    rows["root_dof"].append(hand.root_dof)
+    rows["palm_body"].append(hand.palm_body)
+    rows["link_bodies"].append([hand.link_bodies[n] for n in LINK_NAMES])
+    rows["pad_shapes"].append(hand.pad_shapes)
+    rows["hand_shapes"].append(np.arange(*hand.shape_range, dtype=np.int32))
+
+
+def _add_object(
+    builder: newton.ModelBuilder, rows: dict[str, list], entry: AssetEntry, usd_path: Path
+) -> None:
+    """Load one object's USD into the current world and record where its body or particles went."""
+    b0, j0, s0 = builder.body_count, builder.joint_count, builder.shape_count
+    n0, t0 = builder.particle_count, builder.tet_count
+    try:
+        builder.add_usd(str(usd_path), xform=wp.transform_identity())
+    except Exception as exc:  # a broken asset must name itself
+        raise ValueError(f"{usd_path}: cannot load object '{entry.id}' ({exc})") from exc
+    b1, j1, s1 = builder.body_count, builder.joint_count, builder.shape_count
+    n1, t1 = builder.particle_count, builder.tet_count
+    if entry.kind == "rigid":
+        if b1 - b0 != 1 or j1 - j0 != 1:
+            raise ValueError(
+                f"{usd_path}: rigid object must add one body and one free joint, "
+                f"added {b1 - b0} bodies and {j1 - j0} joints"
+            )
+        rows["object_kind"].append(OBJECT_RIGID)
+        rows["object_body"].append(b0)
+        rows["object_joint_q"].append(builder.joint_q_start[j0])
+        rows["object_joint_qd"].append(builder.joint_qd_start[j0])
+        rows["object_shapes"].append(np.arange(s0, s1, dtype=np.int32))
+    else:
+        if n1 == n0 or t1 == t0:
+            raise ValueError(f"{usd_path}: soft object added no particles or tets")
+        rows["object_kind"].append(OBJECT_SOFT)
+        rows["object_body"].append(-1)
+        rows["object_joint_q"].append(-1)
+        rows["object_joint_qd"].append(-1)
+        rows["object_shapes"].append(np.zeros(0, dtype=np.int32))
+    rows["particle_start"].append(n0)
+    rows["particle_count"].append(n1 - n0)
+    rows["tet_start"].append(t0)
+    rows["tet_count"].append(t1 - t0)
+
+
+def _layout(
+    model: newton.Model, rows: dict[str, list], entries: list[AssetEntry], kinematic_palm: bool
+) -> SceneLayout:
     art_world = model.articulation_world.numpy() if model.articulation_count else np.zeros(0, np.int32)
-    lower = model.joint_limit_lower.numpy()
-    upper = model.joint_limit_upper.numpy()
-    f_dof0 = np.asarray(finger_dof[0])
-    layout = SceneLayout(
+    f_dof0 = np.asarray(rows["finger_dof"][0])
+    per_world = {
+        k: np.array(v, dtype=np.int32) for k, v in rows.items() if k not in ("hand_shapes", "object_shapes")
+    }
+    return SceneLayout(
         num_worlds=len(entries),
-        entries=[e for e, _ in entries],
-        object_kind=np.array(kinds, dtype=np.int32),
-        object_body=np.array(obj_body, dtype=np.int32),
-        object_joint_q=np.array(obj_jq, dtype=np.int32),
-        object_joint_qd=np.array(obj_jqd, dtype=np.int32),
-        particle_start=np.array(p_start, dtype=np.int32),
-        particle_count=np.array(p_count, dtype=np.int32),
-        tet_start=np.array(t_start, dtype=np.int32),
-        tet_count=np.array(t_count, dtype=np.int32),
-        finger_q=np.array(finger_q, dtype=np.int32),
-        finger_dof=np.array(finger_dof, dtype=np.int32),
-        root_q=np.array(root_q, dtype=np.int32),
-        root_dof=np.array(root_dof, dtype=np.int32),
+        entries=entries,
         kinematic_palm=kinematic_palm,
-        palm_body=np.array(palm, dtype=np.int32),
-        link_bodies=np.array(links, dtype=np.int32),
-        hand_shapes=hand_shapes,
-        pad_shapes=np.array(pads, dtype=np.int32),
-        object_shapes=object_shapes,
+        hand_shapes=rows["hand_shapes"],
+        object_shapes=rows["object_shapes"],
         articulation_world=np.asarray(art_world, dtype=np.int32),
         rest_particle_q=model.particle_q.numpy().copy() if model.particle_count else np.zeros((0, 3)),
-        finger_lower=lower[f_dof0].astype(np.float64),
-        finger_upper=upper[f_dof0].astype(np.float64),
+        finger_lower=model.joint_limit_lower.numpy()[f_dof0].astype(np.float64),
+        finger_upper=model.joint_limit_upper.numpy()[f_dof0].astype(np.float64),
+        **per_world,
     )
-    return model, layout
+
+
+def select_world_objects(
+    objects: ObjectSetConfig, num_worlds: int, rng: np.random.Generator
+) -> tuple[Path, list[AssetEntry]]:
+    """``(manifest, one entry per world)`` for an object set: explicit ids fill the worlds in the
+    given order (cycled, e.g. for evaluation); otherwise the matching rigid and soft objects are
+    shuffled and ``soft_fraction`` of the worlds (at least one each when both kinds are wanted and
+    there are two or more worlds) get a soft one."""
+    manifest = Path(objects.manifest) if objects.manifest else default_manifest()
+    if not manifest.is_file():
+        raise FileNotFoundError(f"object manifest not found: {manifest}")
+    entries = read_manifest(manifest)
+    if objects.ids:
+        by_id = {e.id: e for e in entries}
+        missing = [i for i in objects.ids if i not in by_id]
+        if missing:
+            raise ValueError(f"{manifest}: unknown asset ids {missing}")
+        return manifest, [by_id[objects.ids[i % len(objects.ids)]] for i in range(num_worlds)]
+    chosen = [
+        e
+        for e in entries
+        if e.kind in objects.kinds
+        and e.size_bin in objects.size_bins
+        and (objects.split == "all" or e.split == objects.split)
+    ]
+    if not chosen:
+        raise ValueError(
+            f"{manifest}: no asset matches kinds={objects.kinds} split={objects.split} "
+            f"size_bins={objects.size_bins}"
+        )
+    rigid = [e for e in chosen if e.kind == "rigid"]
+    soft = [e for e in chosen if e.kind == "deformable"]
+    rigid = [rigid[i] for i in rng.permutation(len(rigid))]
+    soft = [soft[i] for i in rng.permutation(len(soft))]
+    n_soft = 0
+    if soft and rigid:
+        n_soft = int(round(objects.soft_fraction * num_worlds))
+        n_soft = min(max(n_soft, 1 if num_worlds > 1 else 0), num_worlds - 1)
+    elif soft:
+        n_soft = num_worlds
+    world_entries = [soft[i % len(soft)] for i in range(n_soft)]
+    world_entries += [rigid[i % len(rigid)] for i in range(num_worlds - n_soft)]
+    return manifest, world_entries
+
+
+def apply_soft_damping(model: newton.Model, layout: SceneLayout, soft_damping: float | None) -> None:
+    """Set each soft object's tet damping: Newton does not read it from USD, so it comes from the
+    manifest entry's material (or ``soft_damping`` for all, when given)."""
+    if not model.tet_count:
+        return
+    mats = model.tet_materials.numpy()
+    for w, e in enumerate(layout.entries):
+        if e.kind == "deformable":
+            d = soft_damping if soft_damping is not None else float(e.material.get("damping", 0.0))
+            mats[layout.tet_start[w] : layout.tet_start[w] + layout.tet_count[w], 2] = d
+    model.tet_materials.assign(mats)

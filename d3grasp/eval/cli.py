@@ -20,6 +20,7 @@ from collections.abc import Sequence
 
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
+from d3grasp.cli.args import add_env_override_arg, parse_override, positive_int  # noqa: E402
 from d3grasp.envs.registry import DEFAULT_TASK  # noqa: E402
 from d3grasp.eval.evaluate import (  # noqa: E402
     BASELINE,
@@ -29,7 +30,6 @@ from d3grasp.eval.evaluate import (  # noqa: E402
     SPLITS,
     EvalSettings,
 )
-from d3grasp.train.cli_args import add_env_override_arg, parse_override, positive_int  # noqa: E402
 
 __all__ = ["main", "make_parser", "parse_override"]
 
@@ -92,8 +92,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = make_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     import torch
 
+    from d3grasp.cli.args import resolve_torch_threads, run_command
     from d3grasp.eval.evaluate import evaluate, write_outputs
-    from d3grasp.train.cli_args import resolve_torch_threads, run_command
 
     torch.set_num_threads(resolve_torch_threads(args.torch_threads))
     from d3grasp.console import set_verbosity

@@ -215,7 +215,7 @@ def checkpoint_task(spec: str) -> tuple[str, str]:
     a checkpoint whose task cannot be told needs it given. Raises ``CheckpointError`` (missing or
     unreadable file), ``UnknownTaskError`` or ``ValueError``.
     """
-    from d3grasp.train.runner import read_checkpoint
+    from d3grasp.policies.checkpoint import read_checkpoint
 
     head, sep, rest = spec.partition("=")
     # Only a registered-looking task name before "=" splits the entry: a path may contain "=" too.
@@ -246,7 +246,7 @@ def _ablation_name(task: str) -> str:
 
 def run_specs(settings: EvalSettings) -> list[RunSpec]:
     """The controllers to evaluate, in table order; checks every checkpoint before any env is built."""
-    from d3grasp.train.runner import read_checkpoint
+    from d3grasp.policies.checkpoint import read_checkpoint
 
     if settings.ablation:
         resolved = [checkpoint_task(spec) for spec in settings.ablation]
@@ -277,7 +277,7 @@ def _run_batch(
     on_episode: Callable[[], None],
 ) -> list[dict[str, Any]]:
     """First finished episode of every world of ``env`` under the run's policy or the baseline."""
-    from d3grasp.train.play import make_controller  # the same policy / baseline loader as d3grasp-play
+    from d3grasp.controllers import make_controller  # the same policy / baseline loader as d3grasp-play
 
     controller = make_controller(env, run.task, run.checkpoint, settings.device)
     first: dict[int, dict[str, Any]] = {}
@@ -310,7 +310,7 @@ def evaluate(
     from tqdm import tqdm
 
     from d3grasp.envs import make_env
-    from d3grasp.train.train import seed_everything
+    from d3grasp.seeding import seed_everything
 
     t0 = time.perf_counter()
     settings.validate()

@@ -15,7 +15,8 @@ import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-METRICS: tuple[str, ...] = ("s_grasp", "s_lift", "s_disturb")
+from d3grasp.vocabulary import METRICS  # noqa: F401  (re-exported: eval's own name for them)
+
 COLUMNS: tuple[str, ...] = ("Small", "Medium", "Large", "Deformable", "Average")
 # Every group aggregate() reports: the evaluation table's columns and all rigid objects pooled, the
 # "Diverse" columns of the paper's comparison table.

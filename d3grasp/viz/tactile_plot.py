@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-FINGERS = ("index", "middle", "ring", "thumb")
-FINGER_PADS = ((0, 1, 2), (3, 4, 5), (6, 7, 8), (9, 10))
+from d3grasp.dexhand13 import FINGER_PADS, FINGERS
+
 PHASE_SHADES = {
     "approach": "#f0f0f0",
     "grasp": "#e3eefa",
@@ -40,10 +40,10 @@ class TactileTrace:
             return
         env, w = self.env, self.world
         if not self.meta:
-            from d3grasp.envs.grasps import GRASP_NAMES
+            from d3grasp.vocabulary import GRASP_TYPES
 
             e = env.world_entries[w]
-            self.meta = {"object": e.id, "kind": e.kind, "grasp": GRASP_NAMES[int(env.grasp_id[w])]}
+            self.meta = {"object": e.id, "kind": e.kind, "grasp": GRASP_TYPES[int(env.grasp_id[w])]}
         f = env.t_pad_force if self.sensed else env.t_pad_force_true
         self.forces.append(np.linalg.norm(f[w].cpu().numpy(), axis=-1))
         for ep in episodes or ():
@@ -54,8 +54,8 @@ class TactileTrace:
                 self.done = True
 
     def plot(self, path: str | Path) -> Path:
-        from d3grasp.envs.grasp_env import PHASES
         from d3grasp.viz.figure import pyplot, save_figure
+        from d3grasp.vocabulary import PHASES
 
         plt = pyplot()
 

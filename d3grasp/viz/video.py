@@ -161,8 +161,7 @@ class VideoRecorder:
     def render_frame(self) -> np.ndarray:
         import time
 
-        from d3grasp.envs.grasp_env import PHASES
-        from d3grasp.envs.grasps import GRASP_NAMES
+        from d3grasp.vocabulary import GRASP_TYPES, PHASES
 
         env = self.env
         t0 = time.perf_counter()
@@ -181,7 +180,7 @@ class VideoRecorder:
                 e = env.world_entries[w]
                 t = float(env.episode_length_buf[w]) * env.dt
                 lines = [
-                    f"{e.id} ({GRASP_NAMES[int(env.grasp_id[w])]})",
+                    f"{e.id} ({GRASP_TYPES[int(env.grasp_id[w])]})",
                     f"{PHASES[phase[w]]}  t={t:4.2f} s",
                 ]
                 tile = draw_overlay(tile, lines, forces[w])

@@ -234,3 +234,12 @@ def test_layout_from_newton_model() -> None:
         got = layout.pad_rot_in_body.numpy()[w]
         dots = np.abs(np.sum(got * rots, axis=1))
         np.testing.assert_allclose(dots, 1.0, atol=1e-6)
+
+
+def test_kernel_pad_count_is_the_hands() -> None:
+    """The kernels keep their own pad count (they import nothing of the package): it is the hand's."""
+    from d3grasp.kernels import tactile as tactile_kernels
+
+    from d3grasp.dexhand13 import NUM_PADS, PAD_NAMES
+
+    assert tactile_kernels.NUM_PADS == NUM_PADS == len(PAD_NAMES) == 11

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SPEC_PATH = REPO / "tools" / "specs" / "dexhand13_kinematics.json"
 HAND_USD = REPO / "assets_usd" / "hands" / "dexhand13.usda"
 

@@ -21,7 +21,7 @@ import trimesh
 from d3grasp.authoring.manifest import SIZE_BINS, read_manifest, resolve_asset_path, size_bin_of
 from d3grasp.paths import default_manifest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CLASSES = ("sponge", "bread", "plush", "rubber")
 HAS_TETWILD = importlib.util.find_spec("pytetwild") is not None
 

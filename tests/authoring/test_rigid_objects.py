@@ -18,7 +18,7 @@ import pytest
 from d3grasp.authoring.manifest import SIZE_BINS, read_manifest, resolve_asset_path, size_bin_of
 from d3grasp.paths import default_manifest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 MANIFEST = default_manifest()
 RIGID = [e for e in read_manifest(MANIFEST) if e.kind == "rigid"] if MANIFEST.exists() else []
 BY_ID = {e.id: e for e in RIGID}

@@ -10,8 +10,8 @@ from d3grasp.kernels import strain as strain_k
 
 from d3grasp.envs import make_env
 from d3grasp.envs.baseline import RuleBasedController
-from d3grasp.envs.grasp_env import PHASES
 from d3grasp.envs.registry import UnknownTaskError
+from d3grasp.vocabulary import PHASES
 
 RIGID_MEDIUM_BOX = "box_01"  # 9.5 x 3.4 x 6.6 cm, 140 g
 SOFT_SPONGE = "sponge_block_m"
@@ -85,10 +85,11 @@ def test_reset_restores_soft_body_to_rest(mixed_env):
     # Squeeze for a while, then reset only the soft world.
     for _ in range(80):
         env.step(torch.ones(2, env.num_actions))
-    env._reset(torch.tensor([soft_world]))
-    strain_k.compute_strain(env.strain_layout, env.state_0.particle_q, env.strain_buf)
-    eps = env.strain_buf.object_eps.numpy()
-    assert abs(eps[env.world_soft_slot[soft_world]]) < 1e-4
+    env.reset_worlds(torch.tensor([soft_world]))
+    sensors = env.sensors
+    strain_k.compute_strain(sensors.strain_layout, env.state_0.particle_q, sensors.strain_buf)
+    eps = sensors.strain_buf.object_eps.numpy()
+    assert abs(eps[sensors.world_soft_slot[soft_world]]) < 1e-4
 
 
 def _run_baseline_episode(env) -> list[dict]:
@@ -207,12 +208,12 @@ def test_residual_integrator_holds_and_saturates():
 def test_disturbance_force_pushes_a_free_object():
     # The hand waits in its pre-grasp pose; push the free box along +x with 2.5 N for 0.5 s.
     env = _box_env(sim__use_graph=False)
-    start = env._object_state()[0].clone()
+    start = env.object_state()[0].clone()
     mass = float(env.object_mass[0])
     for _ in range(30):
         env.t_object_force[:] = torch.tensor([[2.5, 0.0, 0.0]])
         env._launch_step()
-    moved = env._object_state()[0][0] - start[0]
+    moved = env.object_state()[0][0] - start[0]
     # Pushing force 2.5 N beats the friction limit mu*m*g (~1.4 N at mu = 1): the box slides along +x.
     assert 1.0 * mass * 9.81 < 2.5
     assert moved[0] > 0.02, moved
@@ -246,9 +247,9 @@ def test_held_object_contact_forces_balance_its_weight():
     obj = env.layout.object_body[0]
     net = f[body[s0] == obj].sum(0) - f[body[s1] == obj].sum(0)
     weight = float(env.model.body_mass.numpy()[obj]) * 9.81
-    lifted = env._object_state()[0][0, 2] - env.object_start[0, 2]
+    lifted = env.object_state()[0][0, 2] - env.object_start[0, 2]
     assert lifted > 0.08
-    # VBD's held-object net force reads 12-15% above m*g (DESIGN.md §4): allow 25%.
+    # VBD's held-object net force reads above m*g at finite iterations (see the xfail reason): allow 25%.
     assert net[2] == pytest.approx(weight, rel=0.25)
     assert np.hypot(net[0], net[1]) < 0.25 * weight
 

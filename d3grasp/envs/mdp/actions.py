@@ -1,0 +1,59 @@
+"""How the policy's actions in [-1, 1] become finger joint targets (``GraspEnvConfig.action_mode``).
+
+``absolute`` maps each of 16 actions onto its joint's range. ``residual`` and ``synergy`` run the
+rule-based controller inside the environment and offset its targets by up to ``residual_scale``
+rad: per joint (16 actions), or per finger on its three flexion joints (4 actions). The residual
+follows the actions as a low-pass (``residual_smoothing``) or as a clipped integrator
+(``residual_rate`` > 0). A world with action latency k applies the action of k steps ago.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+
+from d3grasp.dexhand13 import NUM_FINGER_JOINTS, NUM_FINGERS, finger_joints
+
+if TYPE_CHECKING:
+    from d3grasp.envs.grasp_env import GraspEnv
+
+
+def synergy_matrix(device: torch.device | str = "cpu") -> torch.Tensor:
+    """(16, 4): action f moves every flexion joint of finger f by the same amount, abduction none."""
+    s = torch.zeros(NUM_FINGER_JOINTS, NUM_FINGERS, dtype=torch.float32, device=device)
+    for f in range(NUM_FINGERS):
+        s[list(finger_joints(f))[1:], f] = 1.0
+    return s
+
+
+def apply_actions(env: GraspEnv, actions: torch.Tensor) -> None:
+    """Turn one step's actions into the finger joint targets of every world (writes the control)."""
+    cfg = env.cfg
+    # Action latency: a world with latency k applies the action of k steps ago.
+    hist = (
+        torch.cat([actions[:, None], env.action_hist[:, :-1]], dim=1)
+        if env.action_hist.shape[1]
+        else actions[:, None]
+    )
+    lat = env.latency.clamp(max=hist.shape[1] - 1)
+    applied = hist[torch.arange(env.num_envs), lat]
+    if env.residual_base is not None:
+        env.residual_base.act()  # advances the rule on the current touch readings
+        if cfg.action_mode == "synergy":
+            applied = applied @ env.synergy.T
+        if cfg.residual_rate > 0.0:
+            env.residual = (env.residual + cfg.residual_rate * applied).clamp(-1.0, 1.0)
+        else:
+            b = cfg.residual_smoothing
+            env.residual = b * applied + (1.0 - b) * env.residual
+        desired = env.residual_base.target + cfg.residual_scale * env.residual
+        desired = torch.minimum(torch.maximum(desired, env.lower), env.upper)
+    else:
+        desired = env.lower + 0.5 * (applied + 1.0) * (env.upper - env.lower)
+    a = cfg.action_smoothing
+    env.finger_target = a * desired + (1.0 - a) * env.finger_target
+    env.t_target[env.i_finger_q] = env.finger_target
+    env.actions = actions
+    if env.action_hist.shape[1]:
+        env.action_hist = hist

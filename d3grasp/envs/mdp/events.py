@@ -1,0 +1,245 @@
+"""Reset events: where each world's object is put, which grasp is planned for it, the episode's
+domain randomisation, and the restart of the state, the solver's history and the bookkeeping.
+
+The random draws per world are made in a fixed order (object pose, grasp, mass or stiffness,
+friction, drive gains, latency, push order) from the environment's generator: same seed, same
+episodes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import newton
+import numpy as np
+import torch
+import warp as wp
+
+from d3grasp.envs.grasps import choose_grasp, grasp_pose, rot_z
+from d3grasp.envs.scene import OBJECT_SOFT, palm_world_pose_to_free_q, palm_world_pose_to_root_q
+from d3grasp.vocabulary import GRASP_TYPES
+
+if TYPE_CHECKING:
+    from d3grasp.envs.grasp_env import GraspEnv
+
+
+@dataclass
+class ModelArrays:
+    """Host copies of the model arrays a reset rewrites (read once, written back once)."""
+
+    joint_q: np.ndarray
+    joint_target: np.ndarray
+    particle_q: np.ndarray | None
+    tet_materials: np.ndarray | None
+    body_mass: np.ndarray
+    body_inv_mass: np.ndarray
+    shape_mu: np.ndarray
+    drive_ke: np.ndarray
+    drive_kd: np.ndarray
+
+    @classmethod
+    def read(cls, env: GraspEnv) -> ModelArrays:
+        m = env.model
+        return cls(
+            joint_q=m.joint_q.numpy(),
+            joint_target=env.control.joint_target_q.numpy(),
+            particle_q=env.state_0.particle_q.numpy() if m.particle_count else None,
+            tet_materials=m.tet_materials.numpy() if m.tet_count else None,
+            body_mass=m.body_mass.numpy(),
+            body_inv_mass=m.body_inv_mass.numpy(),
+            shape_mu=m.shape_material_mu.numpy(),
+            drive_ke=m.joint_target_ke.numpy(),
+            drive_kd=m.joint_target_kd.numpy(),
+        )
+
+    def write(self, env: GraspEnv) -> None:
+        m = env.model
+        m.joint_q.assign(self.joint_q)
+        env.control.joint_target_q.assign(self.joint_target)
+        m.body_mass.assign(self.body_mass)
+        m.body_inv_mass.assign(self.body_inv_mass)
+        # SolverVBD keeps its own inverse masses (zero for kinematic bodies): refresh them.
+        env.solver.notify_model_changed(newton.ModelFlags.BODY_INERTIAL_PROPERTIES)
+        m.shape_material_mu.assign(self.shape_mu)
+        m.joint_target_ke.assign(self.drive_ke)
+        m.joint_target_kd.assign(self.drive_kd)
+        if self.tet_materials is not None:
+            m.tet_materials.assign(self.tet_materials)
+
+
+def reset_worlds(env: GraspEnv, env_ids: torch.Tensor) -> None:
+    """Start a new episode in the worlds ``env_ids``."""
+    if len(env_ids) == 0:
+        return
+    ids = env_ids.cpu().numpy()
+    arrays = ModelArrays.read(env)
+    for w in ids:
+        _place_object_and_hand(env, w, arrays)
+        _randomise_dynamics(env, w, arrays)
+    arrays.write(env)
+    _restart_state(env, ids, arrays)
+    env.physics.forget_history(ids)
+    _reset_bookkeeping(env, env_ids.to(env.torch_device))
+
+
+def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
+    """Put world ``w``'s object on the table (random offset and yaw), plan the grasp from what the
+    planner sees of it, and set the hand open at the pre-grasp pose."""
+    cfg, rnd, lay = env.cfg, env.cfg.randomization, env.layout
+    rand = rnd.enabled and not cfg.eval_mode
+    table = cfg.sim.table_height
+    e = env.world_entries[w]
+    ex = np.asarray(e.extents, dtype=np.float64)
+    xy = env.rng.uniform(-rnd.object_xy, rnd.object_xy, 2) if rnd.enabled else np.zeros(2)
+    yaw = float(env.rng.uniform(-rnd.object_yaw, rnd.object_yaw)) if rnd.enabled else 0.0
+    obj_pos = np.array([xy[0], xy[1], table + 0.5 * ex[2] + 0.001])
+    qz = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
+    soft = lay.object_kind[w] == OBJECT_SOFT
+    p0, n = int(lay.particle_start[w]), int(lay.particle_count[w])
+    # A soft body's nodes at the new pose (its rest shape turned by the yaw).
+    placed = lay.rest_particle_q[p0 : p0 + n] @ rot_z(yaw).T + obj_pos if soft else None
+    plan_pos, plan_yaw, plan_ex = obj_pos, yaw, ex
+    if env.perception is not None:
+        # The planner sees the camera's estimate; the truth only scores its error.
+        plan_pos, plan_yaw, plan_ex = _perceive(env, w, obj_pos, qz, yaw, ex, placed)
+    grasp = _choose_grasp(env, plan_ex)
+    _set_hand(env, w, arrays, grasp_pose(grasp, plan_pos, plan_yaw, plan_ex, table))
+    env.grasp_id[w] = GRASP_TYPES.index(grasp)
+    env.object_start[w] = torch.as_tensor(obj_pos, dtype=torch.float32)
+    if not soft:
+        q0 = lay.object_joint_q[w]
+        arrays.joint_q[q0 : q0 + 7] = [*obj_pos, *qz]
+        b = lay.object_body[w]
+        scale = env.rng.uniform(*rnd.object_mass_scale) if rand else 1.0
+        arrays.body_mass[b] = env.nominal_body_mass[b] * scale
+        arrays.body_inv_mass[b] = env.nominal_body_inv_mass[b] / scale
+    else:
+        arrays.particle_q[p0 : p0 + n] = placed
+        t0, nt = lay.tet_start[w], lay.tet_count[w]
+        scale = env.rng.uniform(*rnd.youngs_modulus_scale) if rand else 1.0
+        arrays.tet_materials[t0 : t0 + nt, :2] = env.nominal_tet_materials[t0 : t0 + nt, :2] * scale
+
+
+def _choose_grasp(env: GraspEnv, extents: np.ndarray) -> str:
+    allowed = tuple(env.cfg.grasp_types)
+    if env.cfg.grasp_mode == "sample":
+        return allowed[int(env.rng.integers(len(allowed)))]
+    return choose_grasp(extents, allowed, env.cfg.sim.table_height)
+
+
+def _set_hand(env: GraspEnv, w: int, arrays: ModelArrays, gp) -> None:
+    """The open hand at the pre-grasp pose of grasp pose ``gp`` (the script starts from there)."""
+    lay = env.layout
+    pre = gp.palm_pos - env.cfg.phases.pregrasp_clearance * gp.approach_dir
+    root = (
+        palm_world_pose_to_free_q(pre, gp.palm_quat)
+        if lay.kinematic_palm
+        else palm_world_pose_to_root_q(pre, gp.palm_quat)
+    )
+    arrays.joint_q[lay.root_q[w]] = root
+    if not lay.kinematic_palm:
+        arrays.joint_target[lay.root_q[w]] = root
+    env.root_q_cmd[w] = torch.as_tensor(root, dtype=torch.float32)
+    arrays.joint_q[lay.finger_q[w]] = env.open_pose.cpu().numpy()
+    arrays.joint_target[lay.finger_q[w]] = env.open_pose.cpu().numpy()
+    env.grasp_palm_pos[w] = torch.as_tensor(gp.palm_pos, dtype=torch.float32)
+    env.grasp_palm_quat[w] = torch.as_tensor(gp.palm_quat, dtype=torch.float32)
+    env.approach_dir[w] = torch.as_tensor(gp.approach_dir, dtype=torch.float32)
+    env.root_cmd_pos[w] = torch.as_tensor(pre, dtype=torch.float32)
+    env.t_palm_pos_start[w] = torch.as_tensor(pre, dtype=torch.float32)
+    env.t_palm_pos_end[w] = torch.as_tensor(pre, dtype=torch.float32)
+    env.t_palm_quat[w] = torch.as_tensor(gp.palm_quat, dtype=torch.float32)
+
+
+def _randomise_dynamics(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
+    """World ``w``'s episode friction, drive gains, action latency and push order (training only)."""
+    cfg, rnd, lay = env.cfg, env.cfg.randomization, env.layout
+    rand = rnd.enabled and not cfg.eval_mode
+    mu = env.rng.uniform(*rnd.friction) if rand else 1.0
+    shapes = np.concatenate([lay.hand_shapes[w], lay.object_shapes[w]])
+    arrays.shape_mu[shapes] = env.nominal_shape_mu[shapes] * mu
+    gain = env.rng.uniform(*rnd.drive_gain_scale) if rand else 1.0
+    dofs = lay.finger_dof[w]
+    arrays.drive_ke[dofs] = env.nominal_ke[dofs] * gain
+    arrays.drive_kd[dofs] = env.nominal_kd[dofs] * gain
+    env.latency[w] = (
+        int(env.rng.integers(rnd.action_latency_steps[0], rnd.action_latency_steps[1] + 1)) if rand else 0
+    )
+    if cfg.eval_mode:
+        env.disturb_order[w] = torch.arange(6)
+    else:
+        env.disturb_order[w] = torch.as_tensor(env.rng.permutation(6))
+    env.failure[w] = ""
+
+
+def _restart_state(env: GraspEnv, ids: np.ndarray, arrays: ModelArrays) -> None:
+    """Body and particle states of the reset worlds from the new joint coordinates, at rest."""
+    lay, model = env.layout, env.model
+    # Forward kinematics for the reset worlds' articulations only (others keep their state).
+    mask = wp.array(np.isin(lay.articulation_world, ids), dtype=wp.bool, device=env.wp_device)
+    states = (env.physics.state_0, env.physics.state_1)
+    for st in states:
+        newton.eval_fk(model, model.joint_q, model.joint_qd, st, mask=mask)
+    # Joint readings of the reset worlds (the others keep theirs until the next step's IK).
+    q_idx = np.concatenate([np.concatenate([lay.root_q[w], lay.finger_q[w]]) for w in ids])
+    env.t_joint_q[torch.as_tensor(q_idx, dtype=torch.long)] = torch.as_tensor(
+        arrays.joint_q[q_idx], dtype=torch.float32
+    )
+    dof_idx = np.concatenate([np.concatenate([lay.root_dof[w], lay.finger_dof[w]]) for w in ids])
+    env.t_joint_qd[torch.as_tensor(dof_idx, dtype=torch.long)] = 0.0
+    bqd = env.state_0.body_qd.numpy()
+    bqd[np.isin(model.body_world.numpy(), ids)] = 0.0
+    for st in states:
+        st.body_qd.assign(bqd)
+    if arrays.particle_q is None:
+        return
+    pqd = env.state_0.particle_qd.numpy()
+    for w in ids:
+        p0, n = lay.particle_start[w], lay.particle_count[w]
+        pqd[p0 : p0 + n] = 0.0
+    for st in states:
+        st.particle_q.assign(arrays.particle_q)
+        st.particle_qd.assign(pqd)
+    env.sensors.restart_soft_objects(arrays.particle_q, env.state_0, ids)
+
+
+def _reset_bookkeeping(env: GraspEnv, env_ids: torch.Tensor) -> None:
+    env.episode_length_buf[env_ids] = 0
+    env.actions[env_ids] = env.reset_action
+    env.action_hist[env_ids] = env.reset_action
+    env.finger_target[env_ids] = env.open_pose
+    env.residual[env_ids] = 0.0
+    if env.residual_base is not None:
+        env.residual_base.reset(env_ids)
+    env.t_object_force[env_ids] = 0.0
+    env.s_grasp[env_ids] = False
+    env.lift_ok[env_ids] = True
+    env.disturb_ok[env_ids] = True
+    env.max_strain[env_ids] = 0.0
+    env.episode_return[env_ids] = 0.0
+
+
+def _perceive(
+    env: GraspEnv, w, obj_pos, qz, yaw, ex, placed_particles
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Camera estimate (centre, yaw, extents) of world ``w``'s freshly placed object; logs its error.
+
+    ``placed_particles``: a soft object's nodes at the new pose (None for a rigid object).
+    """
+    from d3grasp.vision.perception import localisation_error
+
+    lay = env.layout
+    soft = placed_particles is not None
+    est = env.perception.observe(
+        env.state_0,
+        w,
+        int(lay.object_body[w]),
+        None if soft else np.concatenate([obj_pos, qz]),
+        (int(lay.particle_start[w]), placed_particles) if soft else None,
+        fallback_extents=np.full(3, 0.06),
+    )
+    err = localisation_error(est, obj_pos, yaw, ex)
+    env.loc_records[w] = {"perception": "camera", "loc_ok": bool(est.ok), **err.as_record()}
+    return est.centre, est.yaw, est.extents

@@ -1,0 +1,168 @@
+"""The observation groups, as named terms (scales in ``ObservationConfig``).
+
+``policy`` (the actor; what a real hand has): pad forces and contacts, finger joint positions
+and velocities, the action history, the episode clock, the grasp type and phase, where the
+scripted palm is along its path, and in the residual modes the rule's targets and the residual.
+``privileged`` (the critic's extra group): the object's pose and velocity relative to the palm,
+hand-object distances, strain and the deformable rotation's sigma, material, true pad forces.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import torch
+from tensordict import TensorDict
+
+from d3grasp.envs.sensors import wp_view
+from d3grasp.vocabulary import GRASP_TYPES, PHASES
+
+if TYPE_CHECKING:
+    from d3grasp.envs.grasp_env import GraspEnv
+
+Term = Callable[["GraspEnv"], torch.Tensor]
+
+
+# ---------------------------------------------------------------------------------- policy terms
+
+
+def pad_forces(env: GraspEnv) -> torch.Tensor:
+    return torch.nan_to_num(env.t_pad_force).reshape(env.num_envs, -1) / env.cfg.obs.pad_force_per_unit
+
+
+def pad_contacts(env: GraspEnv) -> torch.Tensor:
+    return env.t_pad_contact
+
+
+def joint_positions(env: GraspEnv) -> torch.Tensor:
+    """Finger joint positions normalised over their limits to [-1, 1]."""
+    return env.normalize_joints(torch.nan_to_num(env.t_joint_q[env.i_finger_q]))
+
+
+def joint_velocities(env: GraspEnv) -> torch.Tensor:
+    return env.cfg.obs.joint_vel_scale * torch.nan_to_num(env.t_joint_qd[env.i_finger_dof])
+
+
+def action_history(env: GraspEnv) -> torch.Tensor:
+    return env.action_hist.reshape(env.num_envs, -1)
+
+
+def episode_clock(env: GraspEnv) -> torch.Tensor:
+    """t / T, sin(2 pi t / T), cos(2 pi t / T) (the paper's t_i)."""
+    t = env.episode_length_buf.float()
+    T = float(env.max_episode_length)
+    return torch.cat(
+        [
+            (t / T)[:, None],
+            torch.sin(2.0 * math.pi * t / T)[:, None],
+            torch.cos(2.0 * math.pi * t / T)[:, None],
+        ],
+        dim=-1,
+    )
+
+
+def grasp_type(env: GraspEnv) -> torch.Tensor:
+    return torch.nn.functional.one_hot(env.grasp_id, len(GRASP_TYPES)).float()
+
+
+def phase(env: GraspEnv) -> torch.Tensor:
+    return torch.nn.functional.one_hot(env.phase_of(env.episode_length_buf), len(PHASES)).float()
+
+
+def palm_offset(env: GraspEnv) -> torch.Tensor:
+    """The palm command relative to the grasp pose (m, scaled)."""
+    return (env.root_cmd_pos - env.grasp_palm_pos) * env.cfg.obs.palm_offset_scale
+
+
+def palm_orientation(env: GraspEnv) -> torch.Tensor:
+    return env.grasp_palm_quat
+
+
+def rule_targets(env: GraspEnv) -> torch.Tensor:
+    """The rule's current joint targets (what the residual is added to), normalised."""
+    return env.normalize_joints(env.residual_base.target)
+
+
+def residual(env: GraspEnv) -> torch.Tensor:
+    """The residual now applied, per joint."""
+    return env.residual
+
+
+def policy_terms(env: GraspEnv) -> list[tuple[str, Term]]:
+    """The policy group's terms in order (tactile terms only with ``tactile_obs``)."""
+    terms: list[tuple[str, Term]] = []
+    if env.cfg.tactile_obs:
+        terms += [("pad_forces", pad_forces), ("pad_contacts", pad_contacts)]
+    terms += [
+        ("joint_positions", joint_positions),
+        ("joint_velocities", joint_velocities),
+        ("action_history", action_history),
+        ("episode_clock", episode_clock),
+        ("grasp_type", grasp_type),
+        ("phase", phase),
+        ("palm_offset", palm_offset),
+        ("palm_orientation", palm_orientation),
+    ]
+    if env.residual_base is not None:
+        terms += [("rule_targets", rule_targets), ("residual", residual)]
+    return terms
+
+
+# ------------------------------------------------------------------------------ privileged terms
+
+
+def object_offset(env: GraspEnv, obj: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    palm = wp_view(env.state_0.body_q)[env.i_palm, :3]
+    return (obj[0] - palm) * env.cfg.obs.object_offset_scale
+
+
+def link_distances(env: GraspEnv, obj: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    links = wp_view(env.state_0.body_q)[env.i_link_bodies, :3]
+    return torch.linalg.norm(links - obj[0][:, None], dim=-1) * env.cfg.obs.link_distance_scale
+
+
+def strain(env: GraspEnv) -> torch.Tensor:
+    if env.sensors.strain_layout is None:
+        return torch.zeros(env.num_envs)[:, None]
+    return env.sensors.soft_scalar(env.sensors.strain_buf.object_eps)[:, None]
+
+
+def sigma(env: GraspEnv) -> torch.Tensor:
+    if env.sensors.strain_layout is None:
+        return torch.zeros(env.num_envs)[:, None] * env.cfg.obs.sigma_scale
+    return env.sensors.soft_scalar(env.sensors.strain_buf.sigma)[:, None] * env.cfg.obs.sigma_scale
+
+
+def privileged(env: GraspEnv) -> torch.Tensor:
+    """The critic's extra group: object state relative to the palm, distances, strain, material,
+    true pad forces."""
+    obj = env.object_state()
+    o = env.cfg.obs
+    return torch.cat(
+        [
+            object_offset(env, obj),
+            obj[1],  # orientation (xyzw)
+            obj[2],  # linear velocity
+            o.object_ang_vel_scale * obj[3],
+            link_distances(env, obj),
+            strain(env),
+            sigma(env),
+            env.object_mass[:, None],
+            env.object_friction[:, None],
+            env.object_log_e[:, None] / o.log_youngs_per_unit,
+            torch.nan_to_num(env.t_pad_force_true).reshape(env.num_envs, -1) / o.pad_force_per_unit,
+        ],
+        dim=-1,
+    )
+
+
+def compute_observations(env: GraspEnv) -> TensorDict:
+    """Both groups, non-finite values zeroed."""
+    policy = torch.cat([term(env) for _, term in policy_terms(env)], dim=-1)
+    return TensorDict(
+        {"policy": torch.nan_to_num(policy), "privileged": torch.nan_to_num(privileged(env))},
+        batch_size=[env.num_envs],
+        device=env.torch_device,
+    )

@@ -1,0 +1,97 @@
+"""The reward: the paper's terms plus the lift term, computed by the Warp kernels of
+``d3grasp.kernels.rewards`` for all worlds at once. Here the kernels' inputs are filled from the
+state; the weights are ``GraspEnvConfig.rewards``."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import torch
+import warp as wp
+
+from d3grasp.dexhand13 import NUM_FINGER_JOINTS, NUM_LINKS, NUM_PADS
+from d3grasp.envs.scene import OBJECT_SOFT
+from d3grasp.envs.sensors import wp_view
+from d3grasp.kernels import rewards as rk
+from d3grasp.vocabulary import PHASES
+
+if TYPE_CHECKING:
+    from d3grasp.envs.grasp_env import GraspEnv
+
+# Half-thickness of a finger link (m): hand-to-table distances are link frame heights above the
+# table minus this.
+FINGER_HALF_THICKNESS = 0.012
+
+# The reward inputs the environment writes each step (the rest point at the true pad readings).
+_STEP_INPUTS = (
+    "alive",
+    "joint_q",
+    "joint_qd",
+    "link_pos",
+    "object_com",
+    "obj_lin_vel",
+    "obj_ang_vel",
+    "env_dist",
+    "eps_bar",
+    "node_count",
+    "object_rise",
+)
+
+
+def allocate(env: GraspEnv) -> None:
+    """The reward kernels' input and output buffers, and torch views of the inputs written per step."""
+    W, dev, lay = env.num_envs, env.wp_device, env.layout
+    env.rw_in = rk.RewardInputs(
+        alive=wp.zeros(W, dtype=float, device=dev),
+        joint_q=wp.zeros((W, NUM_FINGER_JOINTS), dtype=float, device=dev),
+        joint_q_ref=wp.zeros((W, NUM_FINGER_JOINTS), dtype=float, device=dev),
+        joint_qd=wp.zeros((W, NUM_FINGER_JOINTS), dtype=float, device=dev),
+        link_pos=wp.zeros((W, NUM_LINKS), dtype=wp.vec3, device=dev),
+        object_com=wp.zeros(W, dtype=wp.vec3, device=dev),
+        pad_force=env.sensors.pad_force_true,
+        pad_contact=env.sensors.pad_contact_true,
+        obj_lin_vel=wp.zeros(W, dtype=wp.vec3, device=dev),
+        obj_ang_vel=wp.zeros(W, dtype=wp.vec3, device=dev),
+        env_dist=wp.zeros((W, NUM_LINKS), dtype=float, device=dev),
+        eps_bar=wp.zeros(W, dtype=float, device=dev),
+        node_count=wp.zeros(W, dtype=float, device=dev),
+        is_deformable=wp.array((lay.object_kind == OBJECT_SOFT).astype("int32"), dtype=wp.int32, device=dev),
+        object_rise=wp.zeros(W, dtype=float, device=dev),
+    )
+    env.rw_out = rk.RewardBuffers.allocate(env.cfg.rewards, W, NUM_LINKS, NUM_PADS, device=dev)
+    env.t_reward_terms = wp_view(env.rw_out.terms)
+    env.t_reward_total = wp_view(env.rw_out.total)
+    env.t_rw = {name: wp_view(getattr(env.rw_in, name)) for name in _STEP_INPUTS}
+
+
+def compute_rewards(env: GraspEnv, obj_pos, obj_lin, obj_ang, finite) -> torch.Tensor:
+    """The step's reward of every world (W,), non-finite values zeroed and clipped at ``reward_clip``."""
+    links = wp_view(env.state_0.body_q)[env.i_link_bodies, :3]
+    r = env.t_rw
+    r["alive"][:] = finite.float()
+    r["joint_q"][:] = torch.nan_to_num(env.t_joint_q[env.i_finger_q])
+    r["joint_qd"][:] = torch.nan_to_num(env.t_joint_qd[env.i_finger_dof])
+    r["link_pos"][:] = torch.nan_to_num(links)
+    r["object_com"][:] = torch.nan_to_num(obj_pos)
+    r["obj_lin_vel"][:] = torch.nan_to_num(obj_lin)
+    r["obj_ang_vel"][:] = torch.nan_to_num(obj_ang)
+    height = links[..., 2] - env.cfg.sim.table_height - FINGER_HALF_THICKNESS
+    r["env_dist"][:] = torch.nan_to_num(height).clamp(min=0.0)
+    sensors = env.sensors
+    r["eps_bar"][:] = (
+        sensors.soft_scalar(sensors.strain_buf.object_eps) if sensors.strain_layout is not None else 0.0
+    )
+    nodes = torch.zeros(env.num_envs, device=env.torch_device)
+    if sensors.strain_layout is not None:
+        nodes[torch.as_tensor(sensors.soft_worlds)] = torch.as_tensor(
+            sensors.strain_layout.node_counts, dtype=torch.float32
+        )
+    r["node_count"][:] = nodes
+    # Rise above the resting height, counted from the lift phase on (the kernel clamps it).
+    lifting = env.phase_of(env.episode_length_buf) >= PHASES.index("lift")
+    rise = torch.nan_to_num(obj_pos[:, 2] - env.object_start[:, 2])
+    r["object_rise"][:] = torch.where(lifting, rise, torch.zeros_like(rise))
+    rk.compute_rewards(env.rw_in, env.rw_out)
+    total = torch.nan_to_num(env.t_reward_total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
+    clip = env.cfg.reward_clip
+    return total.clamp(-clip, clip) if clip > 0 else total

@@ -1,0 +1,169 @@
+"""The physics of all worlds: SolverVBD, the collision pipeline, the substeps of one control step,
+and clearing a reset world's solver history.
+
+One control step (60 Hz) is ``substeps x (clear forces, move the kinematic palm, apply the
+disturbance, collide, SolverVBD step)``; the environment captures it together with the sensors
+as one Warp graph (:meth:`Physics.capture`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import newton
+import numpy as np
+import warp as wp
+
+from d3grasp.envs.config import SimConfig
+from d3grasp.envs.scene import SceneLayout
+
+
+@wp.kernel
+def _apply_object_force_kernel(
+    force: wp.array(dtype=wp.vec3),
+    object_body: wp.array(dtype=wp.int32),
+    particle_start: wp.array(dtype=wp.int32),
+    particle_count: wp.array(dtype=wp.int32),
+    body_f: wp.array(dtype=wp.spatial_vector),
+    particle_f: wp.array(dtype=wp.vec3),
+):
+    # One thread per world: the disturbance acts at the rigid body's frame origin (its bounding-box
+    # centre, within millimetres of the centre of mass) or is spread evenly over a soft object's nodes.
+    w = wp.tid()
+    f = force[w]
+    b = object_body[w]
+    if b >= 0:
+        body_f[b] = body_f[b] + wp.spatial_vector(f, wp.vec3(0.0, 0.0, 0.0))
+    n = particle_count[w]
+    if n > 0:
+        share = f / float(n)
+        p0 = particle_start[w]
+        for i in range(n):
+            particle_f[p0 + i] = particle_f[p0 + i] + share
+
+
+@wp.kernel
+def _set_palm_pose_kernel(
+    palm_body: wp.array(dtype=wp.int32),
+    pos_start: wp.array(dtype=wp.vec3),
+    pos_end: wp.array(dtype=wp.vec3),
+    quat: wp.array(dtype=wp.quat),
+    alpha: float,
+    body_q: wp.array(dtype=wp.transform),
+):
+    # One thread per world: the kinematic palm at fraction ``alpha`` of the control step, on the
+    # straight line from where it was to the commanded position. SolverVBD takes its velocity from
+    # the change against its previous pose, so contacts see the true palm motion.
+    w = wp.tid()
+    p = pos_start[w] + alpha * (pos_end[w] - pos_start[w])
+    body_q[palm_body[w]] = wp.transform(p, quat[w])
+
+
+class Physics:
+    """States, solver and collision pipeline of the multi-world model, and the per-world inputs the
+    substeps read: the disturbance force on each object and the kinematic palm's path."""
+
+    def __init__(self, model: newton.Model, layout: SceneLayout, sim: SimConfig, device: wp.context.Device):
+        self.model, self.layout, self.sim, self.device = model, layout, sim, device
+        W = layout.num_worlds
+        self.num_worlds = W
+        self.sim_dt = 1.0 / sim.control_hz / sim.substeps
+        with wp.ScopedDevice(device):
+            self.state_0 = model.state()
+            self.state_1 = model.state()
+            self.control = model.control()
+            # The default capacity (~1300 per world here) sizes several per-substep kernels that run
+            # over the whole buffer; grasps use < 100 contacts per world.
+            self.pipeline = newton.CollisionPipeline(
+                model,
+                contact_matching="sticky",
+                soft_contact_gap=sim.soft_contact_gap,
+                rigid_contact_max=sim.rigid_contacts_per_world * W,
+            )
+            self.contacts = self.pipeline.contacts()
+            self.solver = newton.solvers.SolverVBD(
+                model,
+                iterations=sim.iterations,
+                rigid_contact_history=True,
+                particle_enable_self_contact=False,
+                rigid_body_contact_buffer_size=sim.body_contact_buffer,
+            )
+            self.observables = self.solver.observables(kinds={"contact_f"}, contacts=self.contacts)
+        self.object_force = wp.zeros(W, dtype=wp.vec3, device=device)
+        self.object_body = wp.array(layout.object_body, dtype=wp.int32, device=device)
+        self.particle_start = wp.array(layout.particle_start, dtype=wp.int32, device=device)
+        self.particle_count = wp.array(layout.particle_count, dtype=wp.int32, device=device)
+        # Kinematic palm: position at the start and end of the control step, fixed orientation.
+        self.palm_body = wp.array(layout.palm_body, dtype=wp.int32, device=device)
+        self.palm_pos_start = wp.zeros(W, dtype=wp.vec3, device=device)
+        self.palm_pos_end = wp.zeros(W, dtype=wp.vec3, device=device)
+        self.palm_quat = wp.zeros(W, dtype=wp.quat, device=device)
+        self.graph = None
+
+    def substeps(self) -> None:
+        """The physics of one control step (Warp launches only: capturable)."""
+        sim = self.sim
+        for i in range(sim.substeps):
+            self.state_0.clear_forces()
+            if self.layout.kinematic_palm:
+                wp.launch(
+                    _set_palm_pose_kernel,
+                    dim=self.num_worlds,
+                    inputs=[
+                        self.palm_body,
+                        self.palm_pos_start,
+                        self.palm_pos_end,
+                        self.palm_quat,
+                        float(i + 1) / float(sim.substeps),
+                    ],
+                    outputs=[self.state_0.body_q],
+                    device=self.device,
+                )
+            wp.launch(
+                _apply_object_force_kernel,
+                dim=self.num_worlds,
+                inputs=[self.object_force, self.object_body, self.particle_start, self.particle_count],
+                outputs=[self.state_0.body_f, self.state_0.particle_f],
+                device=self.device,
+            )
+            # Contacts are stored in body frames and re-evaluated every solver iteration, so detecting
+            # every other substep loses little (the gap covers the motion in between).
+            if i % max(1, sim.collide_every) == 0:
+                self.pipeline.collide(self.state_0, self.contacts)
+            self.solver.step(
+                self.state_0,
+                self.state_1,
+                self.control,
+                self.contacts,
+                self.sim_dt,
+                observables=self.observables,
+            )
+            self.state_0, self.state_1 = self.state_1, self.state_0
+
+    def capture(self, control_step: Callable[[], None]) -> None:
+        """Run ``control_step`` once (it sizes the solver's lazy buffers), then capture it as a graph."""
+        if self.sim.substeps % 2:
+            raise ValueError("sim.substeps must be even: the captured step swaps two states")
+        control_step()
+        self.graph = None
+        if self.sim.use_graph:
+            with wp.ScopedDevice(self.device), wp.ScopedCapture() as capture:
+                control_step()
+            self.graph = capture.graph
+
+    def launch(self, control_step: Callable[[], None]) -> None:
+        """One control step: the captured graph, or ``control_step`` itself when not captured."""
+        if self.graph is not None:
+            wp.capture_launch(self.graph)
+        else:
+            control_step()
+
+    def forget_history(self, worlds: np.ndarray) -> None:
+        """Clear the solver's rigid history (previous poses, joint winding, contact warm starts) and
+        the pipeline's sticky contacts of ``worlds``: without it a body teleported by a reset looks
+        as if it moved that far in one substep."""
+        world_mask = np.zeros(self.model.world_count + 1, dtype=bool)
+        world_mask[worlds] = True
+        wmask = wp.array(world_mask, dtype=wp.bool, device=self.device)
+        self.solver.reset(self.state_0, wmask, flags=0)
+        self.pipeline.reset_contact_matching(wmask)

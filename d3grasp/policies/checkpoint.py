@@ -1,0 +1,158 @@
+"""Checkpoints and their contract: written atomically, read with one-line errors, and checked
+against the environment they are loaded into (task, observation sizes, action count and the
+settings that turn actions into joint targets) before any weights are touched."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+__all__ = [
+    "CheckpointError",
+    "atomic_torch_save",
+    "check_fits",
+    "checkpoint_iteration",
+    "latest_checkpoint",
+    "observation_sizes",
+    "read_checkpoint",
+]
+
+CHECKPOINT_RE = re.compile(r"^model_(\d+)\.pt$")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, unreadable or trained for different observations."""
+
+
+def _umask() -> int:
+    """The process umask (only readable by setting it: set and restore at once)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def atomic_torch_save(obj: Any, path: str | os.PathLike[str]) -> None:
+    """``torch.save`` that never leaves a truncated file at ``path``: temp file, fsync, rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        # mkstemp makes the file owner-only (0600); a checkpoint gets a plain file's mode instead.
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    # Make the rename itself durable (the directory entry).
+    with contextlib.suppress(OSError):
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+
+
+def checkpoint_iteration(path: str | os.PathLike[str]) -> int | None:
+    m = CHECKPOINT_RE.match(Path(path).name)
+    return int(m.group(1)) if m else None
+
+
+def latest_checkpoint(run_dir: str | os.PathLike[str], pattern: str | None = None) -> Path:
+    """The checkpoint with the highest iteration in ``run_dir`` (optionally names matching a regex)."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise CheckpointError(f"run folder not found: {run_dir}")
+    rx = re.compile(pattern) if pattern else None
+    found = [
+        p
+        for p in run_dir.iterdir()
+        if p.is_file() and CHECKPOINT_RE.match(p.name) and (rx is None or rx.fullmatch(p.name))
+    ]
+    if not found:
+        what = f"matching '{pattern}' " if pattern else ""
+        raise CheckpointError(f"no checkpoint model_<N>.pt {what}in {run_dir}")
+    return max(found, key=lambda p: checkpoint_iteration(p) or 0)
+
+
+def read_checkpoint(path: str | os.PathLike[str], map_location: str = "cpu") -> dict[str, Any]:
+    """Load a checkpoint dict, turning a missing or unreadable file into a one-line ``CheckpointError``."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    try:
+        data = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as exc:  # pickle / zip errors have many types
+        raise CheckpointError(f"cannot read checkpoint {path}: {type(exc).__name__}: {exc}") from None
+    if not isinstance(data, dict) or "actor_state_dict" not in data:
+        raise CheckpointError(f"{path} is not an rsl-rl 5.x checkpoint (no 'actor_state_dict')")
+    return data
+
+
+def observation_sizes(obs: Any) -> dict[str, int]:
+    """Width of every observation group of a TensorDict (what a checkpoint records and is checked by)."""
+    # TensorDict iterates over its batch dimension, not its keys: .keys() is needed.
+    return {str(k): int(obs[k].shape[-1]) for k in obs.keys()}  # noqa: SIM118
+
+
+def check_fits(
+    infos: dict[str, Any] | None,
+    path: str,
+    *,
+    task: str | None,
+    obs_sizes: dict[str, int],
+    obs_groups: dict[str, list[str]],
+    num_actions: int,
+    policy_interface: dict[str, Any] | None,
+    models: tuple[str, ...],
+) -> None:
+    """Raise ``CheckpointError`` if a checkpoint's ``models`` read observations of other sizes, act
+    with another action count, or were trained with other action-to-target settings.
+
+    ``obs_sizes``, ``obs_groups``, ``num_actions``, ``policy_interface`` and ``task`` describe the
+    environment it is loaded into; a checkpoint without the record (a foreign rsl-rl one) is left to
+    ``load_state_dict``.
+    """
+    if not infos or "obs_sizes" not in infos:
+        return
+    theirs = infos["obs_sizes"]
+    groups = {g for m in models for g in infos.get("obs_groups", {}).get(m, theirs)}
+    for model in models:
+        groups |= set(obs_groups.get(model, []))
+    diff = {g: (theirs.get(g), obs_sizes.get(g)) for g in sorted(groups) if theirs.get(g) != obs_sizes.get(g)}
+    ckpt_actions = infos.get("num_actions", num_actions)
+    if diff or ckpt_actions != num_actions:
+        sizes = ", ".join(f"'{g}' {a} vs {b}" for g, (a, b) in diff.items())
+        if ckpt_actions != num_actions:
+            sizes += f"{', ' if sizes else ''}actions {ckpt_actions} vs {num_actions}"
+        raise CheckpointError(
+            f"checkpoint {path} was trained on task '{infos.get('task')}' and does not fit task "
+            f"'{task}' (checkpoint vs environment sizes: {sizes})"
+        )
+    _check_policy_interface(infos.get("policy_interface"), policy_interface, path)
+    if infos.get("task") and task and infos["task"] != task:
+        print(f"[d3grasp] note: checkpoint trained on '{infos['task']}', running it on '{task}'")
+
+
+def _check_policy_interface(theirs: dict[str, Any] | None, mine: dict[str, Any] | None, path: str) -> None:
+    """Refuse a checkpoint trained with other action-to-target settings (same sizes, other meaning)."""
+    if not theirs or mine is None:
+        return  # checkpoints from before the record, or an env without a GraspEnvConfig
+    diff = {k: (v, mine[k]) for k, v in theirs.items() if k in mine and mine[k] != v}
+    if diff:
+        given = ", ".join(f"{k}={a!r} (environment: {b!r})" for k, (a, b) in diff.items())
+        fix = " ".join(f"--set {k}={a}" for k, (a, _) in diff.items())
+        raise CheckpointError(
+            f"checkpoint {path} was trained with {given}: its actions mean something else in this "
+            f"environment; build it as trained ({fix})"
+        )
