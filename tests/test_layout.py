@@ -74,3 +74,17 @@ def test_evaluation_needs_nothing_of_training() -> None:
                 assert not node.module.startswith("d3grasp.train"), (name, node.module)
             elif isinstance(node, ast.Import):
                 assert not any(a.name.startswith("d3grasp.train") for a in node.names), name
+
+
+def test_every_package_is_installed() -> None:
+    """pyproject lists the packages explicitly: a new sub-package missing there would be absent
+    from a (non-editable) pip install."""
+    import tomllib
+
+    listed = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = set()
+    for folder, package in ROOTS.items():
+        for init in (REPO / folder).rglob("__init__.py"):
+            parts = init.parent.relative_to(REPO / folder).parts
+            found.add(".".join((package, *parts)))
+    assert found <= listed, f"packages missing from pyproject.toml: {sorted(found - listed)}"
