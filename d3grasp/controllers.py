@@ -100,8 +100,8 @@ def load_actor(
         actor_class, actor_cfg = resolve_class(infos["actor"])
     except (KeyError, ValueError, ImportError, AttributeError) as exc:
         raise CheckpointError(f"checkpoint {path} names an actor rsl-rl cannot build ({exc})") from None
-    groups = resolve_obs_groups(obs, groups, ["actor", "critic"])
-    with library_output("rsl-rl, building the actor"):
+    with library_output("rsl-rl, building the actor"):  # it prints the groups and the network
+        groups = resolve_obs_groups(obs, groups, ["actor", "critic"])
         actor = actor_class(obs, groups, "actor", int(env.num_actions), **actor_cfg).to(device)
     try:
         actor.load_state_dict(data["actor_state_dict"], strict=True)

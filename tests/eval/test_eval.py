@@ -298,3 +298,19 @@ def test_results_json_is_strict_json_with_null_for_non_finite(tmp_path: Path) ->
     written = doc["runs"]["baseline"]["episodes"]
     assert [e["max_strain"] for e in written] == [None, 0.21]
     assert eps[0]["max_strain"] != eps[0]["max_strain"]  # the records themselves are left as they were
+
+
+def test_loading_a_policy_prints_nothing(
+    manifest: Path, checkpoint: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """rsl-rl prints the resolved observation groups and the network while building them: behind
+    --verbose (the debug log), not on the evaluation's console."""
+    from d3grasp.controllers import make_controller
+    from d3grasp.envs import make_env
+
+    env = make_env(DEFAULT_TASK, num_envs=1, objects={"manifest": str(manifest), "ids": OBJECTS[:1]})
+    capsys.readouterr()
+    controller = make_controller(env, DEFAULT_TASK, checkpoint, "cpu")
+    env.close()
+    assert controller.actor is not None
+    assert capsys.readouterr().out == ""
