@@ -27,13 +27,14 @@ import json
 import math
 import os
 import resource
-import tempfile
 import time
 import traceback
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
+
+from d3grasp.files import atomic_write_text
 
 __all__ = ["SoakReport", "run_soak"]
 
@@ -82,12 +83,7 @@ class SoakReport:
 
 
 def _save(report: SoakReport, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}-", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(asdict(report), f, indent=1)
-        f.write("\n")
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(asdict(report), indent=1) + "\n")
 
 
 def _load(path: Path, expect: dict[str, Any]) -> SoakReport:

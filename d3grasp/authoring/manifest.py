@@ -16,14 +16,13 @@ installed as package data.
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 from d3grasp.authoring.precision import stable_json
+from d3grasp.files import atomic_write_text
 from d3grasp.vocabulary import SIZE_BINS
 
 MANIFEST_FORMAT = "d3grasp-manifest"
@@ -90,12 +89,7 @@ def write_manifest(path: str | Path, entries: list[AssetEntry]) -> None:
         "size_bins": {k: list(v) for k, v in SIZE_BINS.items()},
         "assets": [stable_json(asdict(e)) for e in entries],
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".manifest-", suffix=".json")
-    with os.fdopen(fd, "w") as f:
-        json.dump(doc, f, indent=1)
-        f.write("\n")
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
 
 
 def read_manifest(path: str | Path) -> list[AssetEntry]:

@@ -4,14 +4,14 @@ settings that turn actions into joint targets) before any weights are touched.""
 
 from __future__ import annotations
 
-import contextlib
 import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
+
+from d3grasp.files import atomic_write
 
 __all__ = [
     "CheckpointError",
@@ -30,37 +30,9 @@ class CheckpointError(ValueError):
     """A checkpoint that is missing, unreadable or trained for different observations."""
 
 
-def _umask() -> int:
-    """The process umask (only readable by setting it: set and restore at once)."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
 def atomic_torch_save(obj: Any, path: str | os.PathLike[str]) -> None:
     """``torch.save`` that never leaves a truncated file at ``path``: temp file, fsync, rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        # mkstemp makes the file owner-only (0600); a checkpoint gets a plain file's mode instead.
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    # Make the rename itself durable (the directory entry).
-    with contextlib.suppress(OSError):
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
+    atomic_write(path, lambda f: torch.save(obj, f))
 
 
 def checkpoint_iteration(path: str | os.PathLike[str]) -> int | None:
