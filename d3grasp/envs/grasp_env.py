@@ -36,7 +36,6 @@ from d3grasp.envs.mdp import events, observations, rewards, terminations
 from d3grasp.envs.physics import Physics
 from d3grasp.envs.scene import (
     HAND_ANCHOR_QUAT,
-    OBJECT_SOFT,
     apply_soft_damping,
     build_scene,
     select_world_objects,
@@ -62,7 +61,6 @@ class GraspEnv:
         self.wp_device = wp.get_device("cpu" if cfg.device == "cpu" else cfg.device)
         self.torch_device = torch.device(cfg.device)
         self.rng = np.random.default_rng(cfg.seed)
-        self.torch_gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
         self.dt = 1.0 / cfg.sim.control_hz
         self.script = EpisodeScript(cfg.phases, cfg.sim.control_hz, cfg.eval_mode)
         self.phase_start = self.script.phase_start
@@ -138,7 +136,6 @@ class GraspEnv:
         self.t_pad_force = wp_view(se.pad_force)
         self.t_pad_contact = wp_view(se.pad_contact)
         self.t_pad_force_true = wp_view(se.pad_force_true)
-        self.t_pad_contact_true = wp_view(se.pad_contact_true)
 
         def index(a: np.ndarray) -> torch.Tensor:
             return torch.as_tensor(a, dtype=torch.long, device=tdev)
@@ -146,7 +143,6 @@ class GraspEnv:
         self.i_finger_q, self.i_finger_dof = index(lay.finger_q), index(lay.finger_dof)
         self.i_root_q, self.i_link_bodies = index(lay.root_q), index(lay.link_bodies)
         self.i_palm, self.i_obj_body = index(lay.palm_body), index(np.maximum(lay.object_body, 0))
-        self.is_soft = torch.as_tensor(lay.object_kind == OBJECT_SOFT, device=tdev)
         self.lower = torch.as_tensor(lay.finger_lower, dtype=f32, device=tdev)
         self.upper = torch.as_tensor(lay.finger_upper, dtype=f32, device=tdev)
         # The open hand: flexion at its lower limit, abduction centred (all zeros on DexHand13).
