@@ -219,7 +219,10 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_env(args: argparse.Namespace) -> int:
+    from d3grasp.console import quiet_warp
     from d3grasp.envs.benchmark import run_env_benchmark
+
+    quiet_warp()
 
     run_env_benchmark(
         args.worlds, args.kinds, episodes=args.episodes, device=args.device, overrides=dict(args.overrides)
