@@ -157,8 +157,7 @@ def _cmd_kernels(args: argparse.Namespace) -> int:
 
     from d3grasp.console import quiet_warp
 
-    quiet_warp()
-    wp.init()
+    quiet_warp()  # initialises Warp
     rng = np.random.default_rng(0)
     with wp.ScopedDevice(args.device):
         print(f"d3grasp kernel benchmark on {wp.get_device()} (Warp {wp.__version__}); ms per launch, median")

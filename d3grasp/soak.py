@@ -52,7 +52,7 @@ class SoakReport:
     env_steps: int = 0
     segments: int = 0  # build segments completed
     episodes: int = 0
-    endings: dict[str, int] = field(default_factory=dict)  # failure reason or "success" / "time-out"
+    endings: dict[str, int] = field(default_factory=dict)  # failure reason or "held through the pushes"
     nonfinite_worlds: int = 0
     nonfinite_objects: dict[str, int] = field(default_factory=dict)  # object id -> non-finite episodes
     nonfinite_returned: int = 0  # env-steps whose observation or reward reached the caller non-finite
@@ -174,7 +174,6 @@ def run_soak(
         )
         report.peak_rss_mb.append(round(_peak_rss_mb(), 1))
         rng = np.random.default_rng(seed + k)
-        base_nonfinite = env.nonfinite_resets
         done_steps = 0
         try:
             for s in range(min(control_steps, -(-(steps - report.env_steps) // num_envs))):
@@ -199,7 +198,7 @@ def run_soak(
                 if bar is not None:
                     bar.update(num_envs)
         finally:
-            report.nonfinite_worlds += env.nonfinite_resets - base_nonfinite
+            report.nonfinite_worlds += env.nonfinite_resets  # a fresh env counts from 0
             close_env(env)
         report.env_steps += done_steps * num_envs
         report.episodes = sum(endings.values())

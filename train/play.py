@@ -24,12 +24,11 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 import torch  # noqa: E402
 from d3grasp.train.cli_args import make_play_parser, resolve_torch_threads, run_command  # noqa: E402
-from d3grasp.train.configs import fit_mini_batches, make_train_cfg  # noqa: E402
 from d3grasp.train.export import ExportPaths, LatencyReport, export_policy, measure_latency  # noqa: E402
-from d3grasp.train.runner import D3GraspRunner, EpisodeStats, read_checkpoint  # noqa: E402
+from d3grasp.train.runner import EpisodeStats, read_checkpoint  # noqa: E402
 from d3grasp.train.train import DistInfo, load_env_factory, resolve_device  # noqa: E402
 
-from d3grasp.console import library_output, set_verbosity  # noqa: E402
+from d3grasp.console import set_verbosity  # noqa: E402
 from d3grasp.controllers import Controller, make_controller  # noqa: E402
 from d3grasp.envs import close_env  # noqa: E402
 from d3grasp.envs.registry import get_task  # noqa: E402
@@ -38,7 +37,7 @@ from d3grasp.policies.checkpoint import observation_sizes  # noqa: E402
 from d3grasp.seeding import seed_everything  # noqa: E402
 from d3grasp.viz.rollout import PictureSettings, RolloutPictures  # noqa: E402
 
-__all__ = ["Controller", "PlayResult", "format_episode", "load_runner", "main", "make_controller", "play"]
+__all__ = ["Controller", "PlayResult", "format_episode", "main", "make_controller", "play"]
 
 
 @dataclass
@@ -65,30 +64,6 @@ def format_episode(n: int, ep: dict[str, Any]) -> str:
         f"max_strain {float(strain) if strain is not None else float('nan'):.4f}  "
         f"failure: {ep.get('failure') or '-'}"
     )
-
-
-def load_runner(env: Any, task: str, checkpoint: Any, device: str, data: dict | None = None) -> D3GraspRunner:
-    """A runner holding the checkpoint's actor for ``env``'s worlds, built as it was trained.
-
-    The networks come from the checkpoint's saved model sections, not today's defaults, and
-    ``D3GraspRunner.load`` refuses (``CheckpointError``) a checkpoint whose observation sizes
-    differ from the environment's. Used by ``d3grasp-play`` and ``d3grasp-eval``.
-    """
-    data = read_checkpoint(checkpoint) if data is None else data
-    cfg = make_train_cfg(task)
-    cfg["algorithm"]["num_mini_batches"] = fit_mini_batches(
-        cfg["algorithm"]["num_mini_batches"], env.num_envs
-    )
-    infos = data.get("infos") or {}
-    for section in ("actor", "critic"):
-        if isinstance(infos.get(section), dict):
-            cfg[section] = infos[section]
-    if isinstance(infos.get("obs_groups"), dict) and "actor" in infos["obs_groups"]:
-        cfg["obs_groups"]["actor"] = list(infos["obs_groups"]["actor"])
-    with library_output("rsl-rl, building the runner"):  # its model printout: --verbose shows it
-        runner = D3GraspRunner(env, cfg, log_dir=None, device=device, task_name=task)
-    runner.load(str(checkpoint), load_cfg={"actor": True})
-    return runner
 
 
 def play(

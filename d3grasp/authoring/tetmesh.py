@@ -256,8 +256,9 @@ def _meshing_advice(failures: list[str], target_tets: int, max_tets: int) -> str
     """What a user can do about a failed tet meshing, read from the attempts' failures."""
     if failures and all("volume" in f for f in failures):
         return (
-            "the meshes lost more than 5% of the volume: thin or finely detailed parts need more "
-            f"tets than {target_tets} (raise --target-tets, at most {max_tets}) or a smoother surface"
+            f"the meshes lost more than {VOLUME_RTOL:.0%} of the volume: thin or finely detailed parts "
+            f"need more tets than {target_tets} (raise --target-tets, at most {max_tets}) or a smoother "
+            "surface"
         )
     if failures and all("sliver" in f or "inverted" in f for f in failures):
         return "the meshes had slivers: remove near-degenerate triangles or very thin features"

@@ -29,7 +29,8 @@ from tensordict import TensorDict
 
 from d3grasp.authoring.hand import quat_xyzw_to_matrix
 from d3grasp.authoring.manifest import resolve_asset_path
-from d3grasp.dexhand13 import ABDUCTION_JOINTS, NUM_FINGER_JOINTS, NUM_FINGERS
+from d3grasp.dexhand13 import NUM_FINGER_JOINTS, NUM_FINGERS
+from d3grasp.envs.baseline import RuleBasedController, rest_targets
 from d3grasp.envs.config import ACTION_MODES, PERCEPTION_MODES, GraspEnvConfig
 from d3grasp.envs.mdp import actions as mdp_actions
 from d3grasp.envs.mdp import events, observations, rewards, terminations
@@ -82,8 +83,6 @@ class GraspEnv:
         # offsets on its joint targets.
         self.residual_base = None
         if cfg.action_mode in ("residual", "synergy"):
-            from d3grasp.envs.baseline import RuleBasedController
-
             self.residual_base = RuleBasedController(self)
         # Place every world before the first (uncaptured) step, so nothing starts interpenetrating.
         self.reset_all()
@@ -145,10 +144,9 @@ class GraspEnv:
         self.i_palm, self.i_obj_body = index(lay.palm_body), index(np.maximum(lay.object_body, 0))
         self.lower = torch.as_tensor(lay.finger_lower, dtype=f32, device=tdev)
         self.upper = torch.as_tensor(lay.finger_upper, dtype=f32, device=tdev)
-        # The open hand: flexion at its lower limit, abduction centred (all zeros on DexHand13).
-        self.open_pose = self.lower.clone()
-        abduction = torch.as_tensor(ABDUCTION_JOINTS)
-        self.open_pose[abduction] = 0.5 * (self.lower[abduction] + self.upper[abduction])
+        # The open hand: flexion at its lower limit, abduction centred (all zeros on DexHand13), the
+        # pose the rule-based closing starts from.
+        self.open_pose = rest_targets(self.lower, self.upper)
         self.open_action = self.normalize_joints(self.open_pose)
         self._allocate_episode_buffers()
 

@@ -633,8 +633,7 @@ def test_shipped_policy_fits_its_task_and_its_exports_agree() -> None:
     """The package's trained policy loads on its task (observation and action sizes checked), is small,
     and its shipped TorchScript and ONNX exports act like a NumPy transcription of the checkpoint on
     real observations, LSTM state carried (stale exports would differ)."""
-    from d3grasp.train.play import load_runner
-
+    from d3grasp.controllers import load_actor
     from d3grasp.envs import make_env
     from d3grasp.policies import shipped_checkpoint
 
@@ -643,7 +642,7 @@ def test_shipped_policy_fits_its_task_and_its_exports_agree() -> None:
     data = read_checkpoint(ckpt)
     assert data["infos"]["task"] == DEFAULT_TASK
     env = make_env(DEFAULT_TASK, num_envs=1, seed=3, eval_mode=True)
-    load_runner(env, DEFAULT_TASK, ckpt, "cpu")  # CheckpointError if sizes or action mapping differ
+    load_actor(env, DEFAULT_TASK, ckpt, "cpu")  # CheckpointError if sizes or action mapping differ
     exported = ckpt.parent / "exported"
     exports = ExportTwins(
         NumpyLstmPolicy(data["actor_state_dict"]), exported / "policy.pt", exported / "policy.onnx"

@@ -125,13 +125,13 @@ def link_distances(env: GraspEnv, obj: tuple[torch.Tensor, ...]) -> torch.Tensor
 
 def strain(env: GraspEnv) -> torch.Tensor:
     if env.sensors.strain_layout is None:
-        return torch.zeros(env.num_envs)[:, None]
+        return torch.zeros(env.num_envs, 1, device=env.torch_device)
     return env.sensors.soft_scalar(env.sensors.strain_buf.object_eps)[:, None]
 
 
 def sigma(env: GraspEnv) -> torch.Tensor:
     if env.sensors.strain_layout is None:
-        return torch.zeros(env.num_envs)[:, None] * env.cfg.obs.sigma_scale
+        return torch.zeros(env.num_envs, 1, device=env.torch_device)
     return env.sensors.soft_scalar(env.sensors.strain_buf.sigma)[:, None] * env.cfg.obs.sigma_scale
 
 
