@@ -7,30 +7,11 @@ from __future__ import annotations
 import argparse
 import os
 
-from d3grasp.cli.args import (  # re-exported: the training scripts' names for them
-    add_env_override_arg,
-    non_negative_int,
-    parse_override,
-    positive_float,
-    positive_int,
-    resolve_torch_threads,
-    run_command,
-)
+from d3grasp.cli.args import add_env_override_arg, non_negative_int, positive_int
 from d3grasp.envs.config import PERCEPTION_MODES
 from d3grasp.envs.registry import DEFAULT_TASK
 
-__all__ = [
-    "add_common_args",
-    "add_env_override_arg",
-    "make_play_parser",
-    "make_train_parser",
-    "non_negative_int",
-    "parse_override",
-    "positive_float",
-    "positive_int",
-    "resolve_torch_threads",
-    "run_command",
-]
+__all__ = ["add_common_args", "make_play_parser", "make_train_parser"]
 
 
 def _size(value: str) -> tuple[int, int]:

@@ -23,11 +23,12 @@ from typing import Any
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 import torch  # noqa: E402
-from d3grasp.train.cli_args import make_play_parser, resolve_torch_threads, run_command  # noqa: E402
+from d3grasp.train.cli_args import make_play_parser  # noqa: E402
 from d3grasp.train.export import ExportPaths, LatencyReport, export_policy, measure_latency  # noqa: E402
 from d3grasp.train.runner import EpisodeStats, read_checkpoint  # noqa: E402
 from d3grasp.train.train import DistInfo, load_env_factory, resolve_device  # noqa: E402
 
+from d3grasp.cli.args import resolve_torch_threads, run_command  # noqa: E402
 from d3grasp.console import set_verbosity  # noqa: E402
 from d3grasp.controllers import Controller, make_controller  # noqa: E402
 from d3grasp.envs import close_env  # noqa: E402

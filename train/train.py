@@ -29,10 +29,11 @@ from typing import Any
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 import torch  # noqa: E402
-from d3grasp.train.cli_args import make_train_parser, resolve_torch_threads, run_command  # noqa: E402
+from d3grasp.train.cli_args import make_train_parser  # noqa: E402
 from d3grasp.train.configs import fit_mini_batches, make_train_cfg  # noqa: E402
 from d3grasp.train.runner import CheckpointError, D3GraspRunner, latest_checkpoint  # noqa: E402
 
+from d3grasp.cli.args import resolve_torch_threads, run_command  # noqa: E402
 from d3grasp.envs import close_env  # noqa: E402
 from d3grasp.envs.registry import get_task  # noqa: E402
 from d3grasp.seeding import seed_everything
