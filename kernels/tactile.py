@@ -66,6 +66,8 @@ def _accumulate_kernel(
     rigid_contact_max: int,
     shape_pad: wp.array(dtype=wp.int32),
     shape_world: wp.array(dtype=wp.int32),
+    shape_object: wp.array(dtype=wp.int32),
+    object_only: int,
     out: wp.array2d(dtype=wp.vec3),
 ):
     tid = wp.tid()
@@ -75,19 +77,23 @@ def _accumulate_kernel(
         f = wp.spatial_top(contact_f[tid])
         s0 = rigid_shape0[tid]
         s1 = rigid_shape1[tid]
+        # object_only: a row counts only when the pad's partner is an object shape (a pad pressing
+        # the table or another link of the hand is no touch of the object). The table is a static
+        # shape (-1 body, shape index >= 0), so it is told apart by the mask, not by the index.
         if s0 >= 0:
             k0 = shape_pad[s0]
-            if k0 >= 0:
+            if k0 >= 0 and (object_only == 0 or (s1 >= 0 and shape_object[s1] != 0)):
                 wp.atomic_add(out, shape_world[s0], k0, f)
         if s1 >= 0:
             k1 = shape_pad[s1]
-            if k1 >= 0:
+            if k1 >= 0 and (object_only == 0 or (s0 >= 0 and shape_object[s0] != 0)):
                 wp.atomic_add(out, shape_world[s1], k1, -f)
     else:
         j = tid - rigid_contact_max
         if j >= soft_count[0]:
             return
         s = soft_shape[j]
+        # Soft contacts are pad-particle contacts, and every particle belongs to an object.
         if s >= 0:
             k = shape_pad[s]
             if k >= 0:
@@ -146,6 +152,8 @@ class TactileLayout:
         world_count: number of worlds W.
         shape_pad: (shape_count,) int32 pad slot 0..10 for pad shapes, -1 otherwise.
         shape_world: (shape_count,) int32 world of each shape (pads must be in a world >= 0).
+        shape_object: (shape_count,) int32 1 for the shapes of the grasped objects, else 0 (what
+            ``accumulate_pad_forces(..., object_only=True)`` counts as a pad's partner).
         pad_body: (W, 11) int32 body of each pad (-1: static, identity body rotation).
         pad_rot_in_body: (W, 11) quat, rotation of the pad frame relative to its body.
         noise_seed: (1,) int32 on the device, advanced by one after every :func:`pad_frame_forces`, so
@@ -159,10 +167,13 @@ class TactileLayout:
     pad_rot_in_body: wp.array
     device: wp.Device
     noise_seed: wp.array | None = None
+    shape_object: wp.array | None = None
 
     def __post_init__(self) -> None:
         if self.noise_seed is None:
             self.noise_seed = wp.zeros(1, dtype=wp.int32, device=self.device)
+        if self.shape_object is None:
+            self.shape_object = wp.zeros(self.shape_pad.shape[0], dtype=wp.int32, device=self.device)
 
     def set_noise_seed(self, seed: int) -> None:
         """Reset the noise stream (host write; do it outside captured graphs)."""
@@ -177,15 +188,20 @@ class TactileLayout:
         shape_rot_in_body: np.ndarray,
         world_count: int,
         device: wp.DeviceLike = None,
+        shape_is_object: np.ndarray | None = None,
     ) -> TactileLayout:
-        """From per-shape arrays: pad slot (-1 = not a pad), world, body, rotation in body (xyzw)."""
+        """From per-shape arrays: pad slot (-1 = not a pad), world, body, rotation in body (xyzw),
+        and optionally which shapes belong to the grasped objects."""
         sp = np.asarray(shape_pad, dtype=np.int64)
         sw = np.asarray(shape_world, dtype=np.int64)
         sb = np.asarray(shape_body, dtype=np.int64)
         sr = np.asarray(shape_rot_in_body, dtype=np.float64).reshape(-1, 4)
         n = len(sp)
-        if not (sw.shape == (n,) and sb.shape == (n,) and sr.shape == (n, 4)):
-            raise ValueError("shape_pad, shape_world, shape_body and shape_rot_in_body must share one length")
+        so = np.zeros(n, dtype=bool) if shape_is_object is None else np.asarray(shape_is_object, dtype=bool)
+        if not (sw.shape == (n,) and sb.shape == (n,) and sr.shape == (n, 4) and so.shape == (n,)):
+            raise ValueError(
+                "shape_pad, shape_world, shape_body, shape_rot_in_body, shape_is_object: lengths differ"
+            )
         if np.any(sp >= NUM_PADS) or np.any(sp < -1):
             raise ValueError(f"pad slots must be -1 or in [0, {NUM_PADS})")
         is_pad = sp >= 0
@@ -209,6 +225,7 @@ class TactileLayout:
             pad_body=wp.array(pad_body, dtype=wp.int32, device=dev),
             pad_rot_in_body=wp.array(pad_rot.astype(np.float32), dtype=wp.quat, device=dev),
             device=dev,
+            shape_object=wp.array(so.astype(np.int32), dtype=wp.int32, device=dev),
         )
 
     @classmethod
@@ -241,12 +258,18 @@ class TactileLayout:
 
 
 def accumulate_pad_forces(
-    layout: TactileLayout, contacts: object, contact_f: wp.array, out_world: wp.array
+    layout: TactileLayout,
+    contacts: object,
+    contact_f: wp.array,
+    out_world: wp.array,
+    object_only: bool = False,
 ) -> None:
     """Sum all contact rows on pad shapes into ``out_world`` ((W,11) vec3, world frame); no host sync.
 
     ``contacts`` is a ``newton.Contacts`` (or any object with the same array names and
-    ``rigid_contact_max``); ``contact_f`` the solver observable of the same layout.
+    ``rigid_contact_max``); ``contact_f`` the solver observable of the same layout. ``object_only``
+    sums only the contacts with the grasped object (``layout.shape_object``; soft contacts always
+    are): the touch of the object, as the success metrics and the closing rule need it.
     """
     rmax = int(contacts.rigid_contact_max)
     n = int(contact_f.shape[0])
@@ -266,6 +289,8 @@ def accumulate_pad_forces(
             rmax,
             layout.shape_pad,
             layout.shape_world,
+            layout.shape_object,
+            int(bool(object_only)),
         ],
         outputs=[out_world],
         device=layout.device,

@@ -6,7 +6,9 @@ link distal to it reads more than ``force_threshold`` (N): a finger whose proxim
 object keeps curling its distal links around it, one whose tip meets it stops entirely. This is
 the "close at constant speed until the pads exceed a force threshold" rule applied per joint,
 which is what an under-actuated gripper does mechanically; ``per_joint=False`` stops a whole
-finger at its first touch instead. A stopped joint keeps a small extra squeeze (``squeeze`` rad
+finger at its first touch instead. A joint that cannot follow its target (blocked by a part of the
+finger without a pad, or by the table) can stop the same way (``stall_lag``, off by default). A
+stopped joint keeps a small extra squeeze (``squeeze`` rad
 beyond where it stopped, i.e. ``squeeze * ke`` of drive torque) and holds it through lift, hold and
 disturbance. Abduction joints stay at the middle of their range; fingers the grasp type does not
 use stay open. The thumb's first flexion link carries no pad: its joint stops with the thumb's pads.
@@ -16,7 +18,10 @@ hand is closing, the grasp type) with its state in :class:`RuleState`; it knows 
 environment. :class:`RuleBasedController` runs it on an environment's sensor readings and acts
 through the same interface as a policy (normalised joint targets), so it runs wherever a policy
 does. It reads the pad sensors directly rather than the observation: the proprioception-only
-ablation's observation has no touch, and the baseline needs it.
+ablation's observation has no touch, and the baseline needs it. It reads the pads' contacts with
+the object only (``Sensors.pad_force_object``): each finger stops on the object, not on the table
+(measured before: a fingertip pressing the table stopped its finger in about a fifth of the
+failed train-split grasps, with no force on the object at all).
 """
 
 from __future__ import annotations
@@ -46,6 +51,11 @@ class BaselineConfig:
     force_threshold: float = 0.5  # N on a pad stops the joints proximal to it
     squeeze: float = 0.1  # rad added beyond the stopping point
     per_joint: bool = True  # False: a finger's first touch stops all of its joints
+    # A closing joint whose target runs this far ahead of its position is blocked (a link without a
+    # pad pressing the object, a finger on the table): it stops as on touch instead of winding its
+    # drive up to the joint limit (ke 20 N m/rad: 0.5 rad of lag is 10 N m pressing the object away or
+    # into the table). Free closing lags ~0.05 rad (kd / ke x close_speed plus the links' inertia).
+    stall_lag: float = 0.0  # rad; 0: off
 
 
 def stop_matrix(per_joint: bool = True) -> torch.Tensor:
@@ -76,6 +86,13 @@ def rest_targets(lower: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
     abd = list(ABDUCTION_JOINTS)
     rest[abd] = (0.5 * (lower + upper))[abd]
     return rest
+
+
+def rule_settled(state: RuleState, tables: RuleTables, grasp_id: torch.Tensor) -> torch.Tensor:
+    """(W,) bool: every joint the world's grasp type closes has stopped (on touch or blocked): the
+    hand has closed as far as the object lets it."""
+    uses = tables.grasp_uses[grasp_id]
+    return (state.stopped | ~uses).all(-1)
 
 
 @dataclass
@@ -128,6 +145,8 @@ def rule_step(
     """
     force = torch.linalg.norm(pad_force, dim=-1)  # (W, 11)
     touched = (force > cfg.force_threshold).float() @ tables.stops.T > 0  # (W, 16)
+    if cfg.stall_lag > 0.0:
+        touched |= state.target - joint_q > cfg.stall_lag  # blocked: proprioception's touch
     uses = tables.grasp_uses[grasp_id]
     newly = touched & uses & ~state.stopped & closing[:, None]
     if newly.any():
@@ -144,7 +163,7 @@ def rule_step(
 class RuleBasedController:
     """The rule on an environment's readings; ``act(obs)`` returns actions like a policy.
 
-    ``env`` is any object with the environment's readings (``t_pad_force``, ``t_joint_q`` with
+    ``env`` is any object with the environment's readings (``t_pad_force_object``, ``t_joint_q`` with
     ``i_finger_q``, ``episode_length_buf``, ``phase_of``, ``grasp_id``, ``dt``, joint limits
     ``lower`` / ``upper``, ``normalize_joints``); in the residual action modes the environment runs
     the rule itself (``env.residual_base``) and this controller's actions are the zero residual.
@@ -162,7 +181,13 @@ class RuleBasedController:
         return self.state.target
 
     def reset(self, env_ids: torch.Tensor) -> None:
-        self.state.restart(env_ids, self.rest)
+        # Each world opens in its grasp's pre-shape (abduction), the environment's open pose.
+        open_pose_of = getattr(self.env, "open_pose_of", None)
+        self.state.restart(env_ids, self.rest if open_pose_of is None else open_pose_of(env_ids))
+
+    def settled(self) -> torch.Tensor:
+        """(W,) bool: every joint the grasp type closes has stopped (:func:`rule_settled`)."""
+        return rule_settled(self.state, self.tables, self.env.grasp_id)
 
     def act(self, obs: object = None) -> torch.Tensor:
         env = self.env
@@ -178,7 +203,7 @@ class RuleBasedController:
             self.state,
             self.tables,
             self.cfg,
-            env.t_pad_force,
+            env.t_pad_force_object,
             env.t_joint_q[env.i_finger_q],
             closing,
             env.grasp_id,

@@ -67,7 +67,12 @@ class PhaseConfig:
     """Episode schedule: pre-grasp → approach → grasp → lift → hold → disturb (→ release)."""
 
     approach: float = 0.5  # root moves from pre-grasp to grasp pose
-    grasp: float = 1.0  # root still, the fingers close
+    grasp: float = 1.5  # root still, the fingers close; the lift starts at the latest at its end
+    # The lift starts once the pads have felt the object (a thumb pad and an opposing pad, contacts
+    # with the object only) for ``grasp_settle`` s without a break: the drives build the squeeze in
+    # that time (a joint stopping on touch reaches its squeeze target within ~0.1 s at kd 0.05).
+    lift_on_touch: bool = True
+    grasp_settle: float = 0.25
     lift: float = 1.0  # root rises lift_height on a smooth (cosine) profile
     hold: float = 0.5
     disturb_per_direction: float = 2.0
@@ -121,6 +126,12 @@ class RandomizationConfig:
     drive_gain_scale: tuple[float, float] = (0.8, 1.2)
 
 
+GRASP_SOURCES: tuple[str, ...] = ("file", "rule")
+"""Where each object's grasp comes from. ``file``: the library's grasp file (``grasps.json`` next to
+its manifest, made by ``d3grasp-assets plan-grasps``: candidates scored in simulation), falling back
+to the rule for an object it does not list; ``rule``: the geometric rule on the object's size alone
+(``d3grasp.envs.grasps.choose_grasp``)."""
+
 PERCEPTION_MODES: tuple[str, ...] = ("oracle", "camera")
 """Where the grasp planner gets the object's pose and size. ``oracle``: the simulator's ground truth.
 ``camera``: an RGB-D camera per world (Newton's ray-traced SensorCamera) and d3grasp.vision's
@@ -154,7 +165,8 @@ class GraspEnvConfig:
     seed: int = 0
     eval_mode: bool = False  # all six disturbance directions, no randomisation of dynamics
     grasp_types: tuple[str, ...] = GRASP_TYPES
-    grasp_mode: str = "rule"  # rule: chosen from object size and shape; sample: uniform per episode
+    grasp_mode: str = "rule"  # rule: the best type (file) or the size rule; sample: uniform per episode
+    grasp_source: str = "file"  # see GRASP_SOURCES
     perception: str = "oracle"  # see PERCEPTION_MODES
     action_mode: str = "synergy"  # see ACTION_MODES
     residual_scale: float = 0.4  # rad of joint-target offset at a residual of 1 (residual, synergy modes)

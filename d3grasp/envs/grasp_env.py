@@ -29,9 +29,10 @@ from tensordict import TensorDict
 
 from d3grasp.authoring.hand import quat_xyzw_to_matrix
 from d3grasp.authoring.manifest import resolve_asset_path
-from d3grasp.dexhand13 import NUM_FINGER_JOINTS, NUM_FINGERS
+from d3grasp.dexhand13 import ABDUCTION_JOINTS, NUM_FINGER_JOINTS, NUM_FINGERS
 from d3grasp.envs.baseline import RuleBasedController, rest_targets
-from d3grasp.envs.config import ACTION_MODES, PERCEPTION_MODES, GraspEnvConfig
+from d3grasp.envs.config import ACTION_MODES, GRASP_SOURCES, PERCEPTION_MODES, GraspEnvConfig
+from d3grasp.envs.grasp_file import load_grasp_plan
 from d3grasp.envs.mdp import actions as mdp_actions
 from d3grasp.envs.mdp import events, observations, rewards, terminations
 from d3grasp.envs.physics import Physics
@@ -68,6 +69,10 @@ class GraspEnv:
         self.max_episode_length = self.script.max_episode_length
 
         self.manifest_path, self.world_entries = select_world_objects(cfg.objects, self.num_envs, self.rng)
+        # Grasps: the library's grasp file (the planner's measured grasps per object), if it has one
+        # and the config asks for it; the planner itself sets a per-world override to score candidates.
+        self.grasp_plan = load_grasp_plan(self.manifest_path) if cfg.grasp_source == "file" else None
+        self.grasp_override: list | None = None
         self._build()
         self._allocate_buffers()
         # Camera perception: the grasp planner reads the object's pose and size from a depth image.
@@ -135,6 +140,7 @@ class GraspEnv:
         self.t_pad_force = wp_view(se.pad_force)
         self.t_pad_contact = wp_view(se.pad_contact)
         self.t_pad_force_true = wp_view(se.pad_force_true)
+        self.t_pad_force_object = wp_view(se.pad_force_object)
 
         def index(a: np.ndarray) -> torch.Tensor:
             return torch.as_tensor(a, dtype=torch.long, device=tdev)
@@ -166,6 +172,7 @@ class GraspEnv:
         self.residual = zeros(W, NUM_FINGER_JOINTS)  # per joint, in [-1, 1]
         self.latency = zeros(W, dtype=torch.long)
         self.grasp_id = zeros(W, dtype=torch.long)
+        self.preshape = zeros(W, NUM_FINGERS)  # abduction of each finger's first joint (rad)
         self.grasp_palm_pos, self.grasp_palm_quat, self.approach_dir = zeros(W, 3), zeros(W, 4), zeros(W, 3)
         self.root_cmd_pos = zeros(W, 3)
         self.root_q_cmd = zeros(W, self.layout.root_q.shape[1])
@@ -174,6 +181,12 @@ class GraspEnv:
         self.object_start = zeros(W, 3)
         self.disturb_order = zeros(W, 6, dtype=torch.long)
         self.push_ref = zeros(W, 3)
+        # Touch-timed lift: the step each world's lift starts (the grasp phase's end unless the pads
+        # show a grasp first) and how many steps in a row they have shown one.
+        self.lift_start = torch.full((W,), self.phase_start["lift"], dtype=torch.long, device=tdev)
+        self.touch_steps = zeros(W, dtype=torch.long)
+        self.max_rise = zeros(W)
+        self.max_push_motion = zeros(W)  # m: the most the object moved against the palm in a push
         # Per-episode outcome bookkeeping.
         self.s_grasp = zeros(W, dtype=torch.bool)
         self.lift_ok = torch.ones(W, dtype=torch.bool, device=tdev)
@@ -227,8 +240,18 @@ class GraspEnv:
         return self.sensors.strain_layout
 
     def phase_of(self, t: torch.Tensor) -> torch.Tensor:
-        """Phase index (into :data:`PHASES`) of every world at step ``t``."""
-        return self.script.phase_of(t)
+        """Phase index (into :data:`PHASES`) of every world at step ``t`` (its own lift start)."""
+        return self.script.phase_of(t, self.lift_start)
+
+    def open_pose_of(self, worlds: torch.Tensor) -> torch.Tensor:
+        """(len(worlds), 16) the open hand of each world: the rule's rest pose with the abduction
+        joints at the world's grasp pre-shape."""
+        pose = self.open_pose.expand(len(worlds), -1).clone()
+        pose[:, list(ABDUCTION_JOINTS)] = torch.minimum(
+            torch.maximum(self.preshape[worlds], self.lower[list(ABDUCTION_JOINTS)]),
+            self.upper[list(ABDUCTION_JOINTS)],
+        )
+        return pose
 
     def normalize_joints(self, q: torch.Tensor) -> torch.Tensor:
         """Finger joint positions -> [-1, 1] over their limits (the absolute action scale)."""
@@ -288,7 +311,9 @@ class GraspEnv:
             )
         mdp_actions.apply_actions(self, actions)
         t = self.episode_length_buf
-        self.root_cmd_pos = self.script.palm_command(t + 1, self.grasp_palm_pos, self.approach_dir)
+        self.root_cmd_pos = self.script.palm_command(
+            t + 1, self.grasp_palm_pos, self.approach_dir, self.lift_start
+        )
         self._command_palm(self.root_cmd_pos)
         self.t_object_force[:] = self.script.disturbance(t + 1, self.phase_of(t + 1), self.disturb_order)
 
@@ -345,6 +370,8 @@ def _check_config(cfg: GraspEnvConfig, num_envs: int) -> None:
         raise ValueError(f"residual_smoothing must be in (0, 1], got {cfg.residual_smoothing}")
     if not 0.0 <= cfg.residual_rate <= 1.0:
         raise ValueError(f"residual_rate must be in [0, 1], got {cfg.residual_rate}")
+    if cfg.grasp_source not in GRASP_SOURCES:
+        raise ValueError(f"unknown grasp_source '{cfg.grasp_source}'; known: {list(GRASP_SOURCES)}")
     if cfg.perception not in PERCEPTION_MODES:
         raise ValueError(f"unknown perception '{cfg.perception}'; known: {list(PERCEPTION_MODES)}")
 

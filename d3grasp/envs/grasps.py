@@ -50,10 +50,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from d3grasp.authoring.hand import matrix_to_quat_xyzw
+from d3grasp.authoring.hand import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from d3grasp.vocabulary import GRASP_TYPES
 
 PALM_FRONT_X = 0.138  # palm collider front face (m, palm frame)
+PALM_FACE_Z = 0.0335  # palm collider palmar face (m, palm frame)
 PALM_HALF_WIDTH = 0.0515  # palm collider half-extent along y (m)
 TABLE_CLEARANCE = 0.006  # m kept between the lowest hand collider and the table at the grasp pose
 
@@ -102,6 +103,7 @@ class GraspPose:
     palm_quat: np.ndarray  # (4,) xyzw
     approach_dir: np.ndarray  # (3,) unit world direction the palm moves along during the approach
     feasible: bool
+    preshape: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # abduction (rad) per finger
 
 
 def side_feasible(extents: np.ndarray, table_height: float = 0.0) -> bool:
@@ -139,42 +141,133 @@ def choose_grasp(extents: np.ndarray, allowed: tuple[str, ...], table_height: fl
     return allowed[0]
 
 
-def grasp_pose(
-    grasp: str, obj_pos: np.ndarray, obj_yaw: float, extents: np.ndarray, table_height: float = 0.0
-) -> GraspPose:
-    """Palm pose for grasping an upright object at ``obj_pos`` (its bounding-box centre) with yaw ``obj_yaw``.
+@dataclass(frozen=True)
+class ObjectGrasp:
+    """A grasp in the object's frame: origin at the centre of its bounding box as it rests on the
+    table, z up, x and y along its first two extents (the manifest's ``extents``). Placed with the
+    object's pose at run time (:meth:`place`), whatever estimated that pose (oracle or camera).
 
-    The palm's x axis is aligned with the object's shorter horizontal side, so the fingers wrap
-    its narrow dimension.
+    ``preshape`` is the abduction of the four fingers' first joints (rad; index, middle, ring,
+    thumb) the hand opens with and keeps: the type's posture before the fingers close."""
+
+    grasp: str
+    palm_pos: np.ndarray  # (3,) palm origin in the object frame
+    palm_quat: np.ndarray  # (4,) xyzw, palm orientation in the object frame
+    approach_dir: np.ndarray  # (3,) unit direction the palm moves along in the approach (object frame)
+    feasible: bool = True
+    preshape: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+
+    def place(self, obj_pos: np.ndarray, obj_yaw: float) -> GraspPose:
+        """World pose of this grasp for an object at ``obj_pos`` (box centre) with yaw ``obj_yaw``."""
+        r = rot_z(obj_yaw)
+        return GraspPose(
+            grasp=self.grasp,
+            palm_pos=np.asarray(obj_pos, dtype=np.float64) + r @ self.palm_pos,
+            palm_quat=matrix_to_quat_xyzw(r @ quat_xyzw_to_matrix(self.palm_quat)),
+            approach_dir=r @ self.approach_dir,
+            feasible=self.feasible,
+            preshape=self.preshape,
+        )
+
+    def to_json(self) -> dict:
+        return {
+            "grasp": self.grasp,
+            "palm_pos": [float(x) for x in self.palm_pos],
+            "palm_quat": [float(x) for x in self.palm_quat],
+            "approach_dir": [float(x) for x in self.approach_dir],
+            "preshape": [float(x) for x in self.preshape],
+        }
+
+    @classmethod
+    def from_json(cls, d: dict) -> ObjectGrasp:
+        if d.get("grasp") not in GRASPS:
+            raise ValueError(f"unknown grasp type {d.get('grasp')!r}; known: {list(GRASPS)}")
+        pos, quat, app = (
+            np.asarray(d[k], dtype=np.float64) for k in ("palm_pos", "palm_quat", "approach_dir")
+        )
+        pre = tuple(float(x) for x in d.get("preshape", (0.0, 0.0, 0.0, 0.0)))
+        if pos.shape != (3,) or quat.shape != (4,) or app.shape != (3,) or len(pre) != 4:
+            raise ValueError("a grasp needs palm_pos (3), palm_quat (4), approach_dir (3), preshape (4)")
+        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat)) and np.linalg.norm(quat) > 0.5):
+            raise ValueError("a grasp's palm_pos and palm_quat must be finite, the quaternion of unit length")
+        quat, app = quat / np.linalg.norm(quat), app / max(float(np.linalg.norm(app)), 1e-9)
+        return cls(d["grasp"], pos, quat, app, True, pre)
+
+
+def rot_y(a: float) -> np.ndarray:
+    """Rotation matrix (3, 3) about y by ``a`` rad."""
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def object_grasp(
+    grasp: str,
+    extents: np.ndarray,
+    rest_height: float,
+    *,
+    long_side: bool = False,
+    near_face_x: float | None = None,
+    lateral_y: float | None = None,
+    top_z: float | None = None,
+    pitch: float = 0.0,
+    preshape: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
+) -> ObjectGrasp:
+    """The grasp type's palm pose in the object frame (:class:`ObjectGrasp`) for an upright object of
+    ``extents`` whose centre rests ``rest_height`` above the table.
+
+    By default the palm's x axis lies along the object's shorter horizontal side, so the fingers wrap
+    its narrow dimension (``long_side``: along the longer one), and the object sits where the type's
+    constants put it (:data:`GRASPS`); ``near_face_x``, ``lateral_y`` and ``top_z`` place it elsewhere
+    in the palm frame (the planner's candidates, ``d3grasp.planner``). ``pitch`` turns the hand about
+    the palm's y axis through the object's centre (rad; > 0 raises the finger tips of a palm-down
+    hand away from the table).
     """
     g = GRASPS[grasp]
     ex = np.asarray(extents, dtype=np.float64)
-    short_is_x = ex[0] <= ex[1]
+    short_is_x = (ex[0] <= ex[1]) != bool(long_side)
     along = ex[0] if short_is_x else ex[1]  # extent along the palm's x
     across = ex[1] if short_is_x else ex[0]  # extent along the other horizontal axis
-    yaw = obj_yaw + (0.0 if short_is_x else 0.5 * math.pi)
-    yaw = math.atan2(math.sin(yaw), math.cos(yaw))
-    # The two yaws that align the palm with the short side are equivalent for the object;
-    # pick the one facing +x so the hand never reaches across itself.
-    if abs(yaw) > 0.5 * math.pi:
-        yaw -= math.copysign(math.pi, yaw)
+    yaw = 0.0 if short_is_x else 0.5 * math.pi
+    near_x = g.near_face_x if near_face_x is None else float(near_face_x)
+    lat = g.lateral_y if lateral_y is None else float(lateral_y)
+    top = g.top_z if top_z is None else float(top_z)
     feasible = True
     if g.palm_vertical:
         r = rot_z(yaw) @ _R_SIDE
         depth = across  # extent along the palm normal (horizontal)
-        obj_height = float(obj_pos[2]) - table_height
-        lateral = max(g.lateral_y, PALM_HALF_WIDTH + TABLE_CLEARANCE - obj_height)
+        # Palm y points down: the hand's lower edge clears the table when the object's centre is
+        # high enough in the palm (lateral y no less than the edge's reach below it).
+        lateral = max(lat, PALM_HALF_WIDTH + TABLE_CLEARANCE - rest_height)
         feasible = lateral <= 0.03
-        offset = np.array([g.near_face_x + 0.5 * along, lateral, g.top_z + 0.5 * depth])
+        offset = np.array([near_x + 0.5 * along, lateral, top + 0.5 * depth])
     else:
         r = rot_z(yaw) @ _R_DOWN
         # Palm down (top and pinch): the type's own placement constants differ, the rule does not.
-        offset = np.array([g.near_face_x + 0.5 * along, g.lateral_y, g.top_z + 0.5 * ex[2]])
-    palm_pos = np.asarray(obj_pos, dtype=np.float64) - r @ offset
-    return GraspPose(
+        offset = np.array([near_x + 0.5 * along, lat, top + 0.5 * ex[2]])
+    if pitch:
+        r = r @ rot_y(pitch)
+    return ObjectGrasp(
         grasp=grasp,
-        palm_pos=palm_pos,
+        palm_pos=-(r @ offset),
         palm_quat=matrix_to_quat_xyzw(r),
         approach_dir=r[:, 2].copy(),
         feasible=feasible,
+        preshape=tuple(float(x) for x in preshape),
     )
+
+
+def grasp_pose(
+    grasp: str, obj_pos: np.ndarray, obj_yaw: float, extents: np.ndarray, table_height: float = 0.0
+) -> GraspPose:
+    """Palm pose for grasping an upright object at ``obj_pos`` (its bounding-box centre) with yaw
+    ``obj_yaw`` by the type's geometric rule (:func:`object_grasp` with no variation).
+
+    Of the two yaws that put the palm's x along the object's short side, the one whose fingers point
+    towards +x is taken, so the hand never reaches across itself.
+    """
+    og = object_grasp(grasp, extents, float(obj_pos[2]) - table_height)
+    pose = og.place(obj_pos, obj_yaw)
+    fingers = quat_xyzw_to_matrix(pose.palm_quat)[:, 0]
+    if fingers[0] < -1e-9 or (abs(fingers[0]) <= 1e-9 and fingers[1] < 0.0):
+        pose = og.place(obj_pos, obj_yaw + math.pi)
+    return pose

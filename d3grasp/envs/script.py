@@ -1,10 +1,16 @@
 """The scripted part of an episode: its phases, the palm's path through them and the pushes.
 
 Phases (seconds in ``PhaseConfig``): approach (the palm moves from the pre-grasp to the grasp
-pose), grasp (root still), lift (the root rises ``lift_height`` on a cosine profile), hold,
+pose), grasp (root still, the fingers close), lift (the root rises ``lift_height`` on a cosine
+profile), hold,
 disturb (``disturb_force`` on the object along each of the episode's directions; all six in
 evaluation), release. The grasp pose itself comes from the planner (``d3grasp.envs.grasps``) at
 reset; the policy drives the fingers.
+
+The lift of each world starts when its pads show a grasp (``lift_on_touch``: the environment sets
+``lift_start`` per world, the paper's use of touch to time the lift) and at the latest when the
+grasp phase's time is up; the lift then runs its full duration and the hold, the pushes and the
+episode's length keep their fixed schedule.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ DISTURB_DIRECTIONS = np.array(
     [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float32
 )
 """The six push directions (+x, -x, +y, -y, +z, -z, world frame)."""
+DISTURB_NAMES: tuple[str, ...] = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 
 class EpisodeScript:
@@ -43,20 +50,31 @@ class EpisodeScript:
         self.phase_start = {p: int(bounds[i]) for i, p in enumerate(PHASES)}
         self.max_episode_length = int(bounds[-1])
 
-    def phase_of(self, t: torch.Tensor) -> torch.Tensor:
-        """Phase index (into :data:`PHASES`) of every world at step ``t``."""
+    def phase_of(self, t: torch.Tensor, lift_start: torch.Tensor | None = None) -> torch.Tensor:
+        """Phase index (into :data:`PHASES`) of every world at step ``t``; a world whose lift started
+        early (``lift_start`` (W,) steps) is in the lift phase from then on."""
         starts = torch.as_tensor([self.phase_start[p] for p in PHASES[1:]], device=t.device)
-        return torch.bucketize(t, starts, right=True)
+        phase = torch.bucketize(t, starts, right=True)
+        if lift_start is not None:
+            early = (phase == PHASES.index("grasp")) & (t >= lift_start)
+            phase = torch.where(early, PHASES.index("lift"), phase)
+        return phase
 
     def palm_command(
-        self, t: torch.Tensor, grasp_palm_pos: torch.Tensor, approach_dir: torch.Tensor
+        self,
+        t: torch.Tensor,
+        grasp_palm_pos: torch.Tensor,
+        approach_dir: torch.Tensor,
+        lift_start: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Palm position command (W, 3) at step ``t`` (the orientation stays the grasp orientation)."""
+        """Palm position command (W, 3) at step ``t`` (the orientation stays the grasp orientation);
+        the lift of each world starts at its ``lift_start`` (default: the lift phase's start)."""
         ph = self.cfg
         ta = t.float() / self.phase_steps["approach"]
         s_app = 0.5 - 0.5 * torch.cos(math.pi * ta.clamp(0.0, 1.0))
         pos = grasp_palm_pos - (1.0 - s_app)[:, None] * ph.pregrasp_clearance * approach_dir
-        tl = (t - self.phase_start["lift"]).float() / self.phase_steps["lift"]
+        start = self.phase_start["lift"] if lift_start is None else lift_start
+        tl = (t - start).float() / self.phase_steps["lift"]
         s_lift = 0.5 - 0.5 * torch.cos(math.pi * tl.clamp(0.0, 1.0))
         pos = pos.clone()
         pos[:, 2] += ph.lift_height * s_lift

@@ -36,9 +36,18 @@ class Sensors:
         shape_pad = np.full(model.shape_count, -1, dtype=np.int64)
         for w in range(W):
             shape_pad[layout.pad_shapes[w]] = np.arange(NUM_PADS)
+        shape_is_object = np.zeros(model.shape_count, dtype=bool)
+        for shapes in layout.object_shapes:
+            shape_is_object[shapes] = True
         st = model.shape_transform.numpy()
         self.tactile_layout = tac_k.TactileLayout.from_arrays(
-            shape_pad, model.shape_world.numpy(), model.shape_body.numpy(), st[:, 3:7], W, device=device
+            shape_pad,
+            model.shape_world.numpy(),
+            model.shape_body.numpy(),
+            st[:, 3:7],
+            W,
+            device=device,
+            shape_is_object=shape_is_object,
         )
         self.tactile_layout.set_noise_seed(cfg.seed)
         rnd = cfg.randomization
@@ -57,6 +66,11 @@ class Sensors:
         self.pad_contact = wp.zeros((W, NUM_PADS), dtype=float, device=device)
         self.pad_force_true = wp.zeros((W, NUM_PADS), dtype=wp.vec3, device=device)
         self.pad_contact_true = wp.zeros((W, NUM_PADS), dtype=float, device=device)
+        # The pads' touch of the object alone (contacts with the table or the hand left out), true
+        # values in the pad frames: what s_grasp, the closing rule and the lift trigger read.
+        self.pad_object_world_force = wp.zeros((W, NUM_PADS), dtype=wp.vec3, device=device)
+        self.pad_force_object = wp.zeros((W, NUM_PADS), dtype=wp.vec3, device=device)
+        self.pad_contact_object = wp.zeros((W, NUM_PADS), dtype=float, device=device)
 
         # Soft objects: strain / pose layout with one object slot per soft world.
         soft_worlds = np.nonzero(layout.object_kind == OBJECT_SOFT)[0]
@@ -80,13 +94,20 @@ class Sensors:
         newton.eval_ik(self.model, state, state.joint_q, state.joint_qd)
         cf = observables.contact_f
         tac_k.accumulate_pad_forces(self.tactile_layout, contacts, cf, self.pad_world_force)
-        for cfg, force, contact in (
-            (self.tactile_cfg, self.pad_force, self.pad_contact),
-            (self.true_tactile_cfg, self.pad_force_true, self.pad_contact_true),
+        tac_k.accumulate_pad_forces(
+            self.tactile_layout, contacts, cf, self.pad_object_world_force, object_only=True
+        )
+        for cfg, world_force, force, contact in (
+            (self.tactile_cfg, self.pad_world_force, self.pad_force, self.pad_contact),
+            (self.true_tactile_cfg, self.pad_world_force, self.pad_force_true, self.pad_contact_true),
+            (
+                self.true_tactile_cfg,
+                self.pad_object_world_force,
+                self.pad_force_object,
+                self.pad_contact_object,
+            ),
         ):
-            tac_k.pad_frame_forces(
-                self.tactile_layout, self.pad_world_force, state.body_q, cfg, force, contact
-            )
+            tac_k.pad_frame_forces(self.tactile_layout, world_force, state.body_q, cfg, force, contact)
         if self.strain_layout is not None:
             strain_k.compute_strain(self.strain_layout, state.particle_q, self.strain_buf)
             strain_k.compute_sigma(self.strain_layout, state.particle_q, self.strain_buf)

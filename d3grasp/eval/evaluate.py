@@ -40,6 +40,8 @@ from d3grasp.eval.metrics import (
     ablation_markdown,
     aggregate,
     comparison_markdown,
+    grasp_type_markdown,
+    outcomes_markdown,
     table_markdown,
 )
 from d3grasp.policies import BASELINE, resolve_checkpoint
@@ -494,6 +496,8 @@ def write_outputs(
     if len(summaries) > 1:
         tables.append(comparison_markdown(summaries, f"Comparison: {_conditions(result.settings)}"))
     tables += [table_markdown(summaries[label], _title(specs[label], result.settings)) for label in summaries]
+    tables.append(grasp_type_markdown(result.runs, "By grasp type"))
+    tables.append(outcomes_markdown(result.runs, "How the episodes ended (first cause)"))
     loc_table = localisation_markdown(result.runs)
     if loc_table:
         tables.append(loc_table)

@@ -130,3 +130,53 @@ def ablation_markdown(
     episodes = (str(summaries[n]["Average"]["s_lift"].trials) for n in names)
     lines.append("| episodes | " + " | ".join(episodes) + " |")
     return "\n".join(lines) + "\n"
+
+
+HELD = "held through the pushes"
+
+
+def outcomes_markdown(runs: Mapping[str, Iterable[Mapping]], title: str = "") -> str:
+    """How the episodes ended, one column per run: each failure reason by count (the first cause of
+    an episode, ``d3grasp.envs.mdp.terminations.FAILURES``), and the episodes that held."""
+    from d3grasp.envs.mdp.terminations import FAILURES
+
+    counted = {label: _count_endings(eps) for label, eps in runs.items()}
+    seen = {k for c in counted.values() for k in c}
+    order = [HELD, *FAILURES, *sorted(seen - {HELD, *FAILURES})]
+    lines = [f"**{title}**", ""] if title else []
+    lines.append("| ending | " + " | ".join(counted) + " |")
+    lines.append("|---|" + "---|" * len(counted))
+    for ending in order:
+        if ending in seen:
+            lines.append(
+                f"| {ending} | " + " | ".join(str(c.get(ending, 0)) for c in counted.values()) + " |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def _count_endings(records: Iterable[Mapping]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for r in records:
+        key = HELD if r["s_disturb"] else (r.get("failure") or "not scored")
+        out[key] = out.get(key, 0) + 1
+    return out
+
+
+def grasp_type_markdown(runs: Mapping[str, Iterable[Mapping]], title: str = "") -> str:
+    """s_lift and s_disturb by grasp type (the type each episode's grasp was), one row per run."""
+    from d3grasp.vocabulary import GRASP_TYPES
+
+    lines = [f"**{title}**", ""] if title else []
+    lines.append(
+        "| run (%, 95% CI) | " + " | ".join(f"{g} s_lift | {g} s_disturb" for g in GRASP_TYPES) + " |"
+    )
+    lines.append("|---|" + "---|" * (2 * len(GRASP_TYPES)))
+    for label, eps in runs.items():
+        eps = list(eps)
+        cells = []
+        for g in GRASP_TYPES:
+            mine = [e for e in eps if e.get("grasp_type") == g]
+            for m in ("s_lift", "s_disturb"):
+                cells.append(Rate(sum(bool(e[m]) for e in mine), len(mine)).percent() + f" (n={len(mine)})")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"

@@ -36,6 +36,7 @@ def library(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Path:
     code, stdout, err = _run(
         capsys,
         "import",
+        "--no-plan-grasps",
         str(tmp_path / "brick.obj"),
         str(tmp_path / "ring.ply"),
         "--out",
@@ -107,7 +108,7 @@ def test_import_bad_file_one_line_error(
 ) -> None:
     (tmp_path / name).write_bytes(content)
     out = tmp_path / "lib"
-    code, stdout, err = _run(capsys, "import", str(tmp_path / name), "--out", str(out))
+    code, stdout, err = _run(capsys, "import", "--no-plan-grasps", str(tmp_path / name), "--out", str(out))
     lines = _error_lines(err)
     assert code == 2 and len(lines) == 1
     assert lines[0].startswith(f"error: {tmp_path / name}: ") and reason in lines[0]
@@ -116,12 +117,20 @@ def test_import_bad_file_one_line_error(
 
 def test_import_absurd_size_and_open_soft(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     trimesh.creation.box(extents=[2.0, 0.5, 0.5]).export(tmp_path / "table.stl")
-    code, _, err = _run(capsys, "import", str(tmp_path / "table.stl"), "--out", str(tmp_path / "lib"))
+    code, _, err = _run(
+        capsys, "import", "--no-plan-grasps", str(tmp_path / "table.stl"), "--out", str(tmp_path / "lib")
+    )
     assert code == 2 and "200 cm" in err and "--scale 0.1" in err
     s = trimesh.creation.icosphere(subdivisions=2, radius=0.03)
     trimesh.Trimesh(s.vertices, s.faces[s.triangles_center[:, 2] > 0]).export(tmp_path / "cap.stl")
     code, _, err = _run(
-        capsys, "import", str(tmp_path / "cap.stl"), "--out", str(tmp_path / "lib"), "--deformable"
+        capsys,
+        "import",
+        "--no-plan-grasps",
+        str(tmp_path / "cap.stl"),
+        "--out",
+        str(tmp_path / "lib"),
+        "--deformable",
     )
     assert code == 2 and "non-watertight" in err
     assert not (tmp_path / "lib").exists()
@@ -134,17 +143,21 @@ def test_import_skip_invalid_writes_the_rest(tmp_path: Path, capsys: pytest.Capt
     meshes = [str(tmp_path / n) for n in ("brick.stl", "crate.stl", "ball.stl")]
     out = tmp_path / "lib"
     # Default: one mesh out of range imports nothing.
-    code, stdout, err = _run(capsys, "import", *meshes, "--out", str(out))
+    code, stdout, err = _run(capsys, "import", "--no-plan-grasps", *meshes, "--out", str(out))
     assert code == 2 and len(_error_lines(err)) == 1 and "crate.stl" in err and not out.exists()
     # --skip-invalid: the other two are written, the refused one is listed with its reason, exit 3.
-    code, stdout, err = _run(capsys, "import", *meshes, "--out", str(out), "--skip-invalid")
+    code, stdout, err = _run(
+        capsys, "import", "--no-plan-grasps", *meshes, "--out", str(out), "--skip-invalid"
+    )
     skipped = [ln for ln in err.replace("\r", "\n").splitlines() if ln.startswith("skipped ")]
     assert code == 3 and len(skipped) == 1
     assert skipped[0].startswith(f"skipped {tmp_path / 'crate.stl'}: ") and "50 cm" in skipped[0]
     assert {e.id for e in read_manifest(out / "manifest.json")} == {"brick", "ball"}
     assert "2 assets written" in stdout
     # --skip-invalid with nothing valid is still bad input: exit 2, nothing written.
-    code, _, err = _run(capsys, "import", meshes[1], "--out", str(tmp_path / "none"), "--skip-invalid")
+    code, _, err = _run(
+        capsys, "import", "--no-plan-grasps", meshes[1], "--out", str(tmp_path / "none"), "--skip-invalid"
+    )
     assert code == 2 and "none of the 1 meshes" in err and not (tmp_path / "none").exists()
 
 
@@ -154,9 +167,11 @@ def test_import_skip_invalid_writes_the_rest(tmp_path: Path, capsys: pytest.Capt
 def test_reimport_says_what_it_replaced(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     trimesh.creation.icosphere(subdivisions=2, radius=0.035).export(tmp_path / "pear.stl")
     out = tmp_path / "lib"
-    code, _, err = _run(capsys, "import", str(tmp_path / "pear.stl"), "--out", str(out))
+    code, _, err = _run(capsys, "import", "--no-plan-grasps", str(tmp_path / "pear.stl"), "--out", str(out))
     assert code == 0, err
-    code, stdout, err = _run(capsys, "import", str(tmp_path / "pear.stl"), "--out", str(out), "--deformable")
+    code, stdout, err = _run(
+        capsys, "import", "--no-plan-grasps", str(tmp_path / "pear.stl"), "--out", str(out), "--deformable"
+    )
     assert code == 0, err
     assert "replaced the rigid asset pear (objects/rigid/pear.usda, from import:pear.stl)" in stdout
     (entry,) = read_manifest(out / "manifest.json")
@@ -168,7 +183,14 @@ def test_reimport_says_what_it_replaced(tmp_path: Path, capsys: pytest.CaptureFi
 def test_import_rejects_soft_options_for_rigid(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     trimesh.creation.box(extents=[0.05] * 3).export(tmp_path / "b.obj")
     code, _, err = _run(
-        capsys, "import", str(tmp_path / "b.obj"), "--out", str(tmp_path / "l"), "--poisson", "0.3"
+        capsys,
+        "import",
+        "--no-plan-grasps",
+        str(tmp_path / "b.obj"),
+        "--out",
+        str(tmp_path / "l"),
+        "--poisson",
+        "0.3",
     )
     assert code == 2 and "--deformable" in err
 
@@ -193,5 +215,5 @@ def test_console_script_installed() -> None:
     exe = shutil.which("d3grasp-assets") or str(Path(sys.executable).parent / "d3grasp-assets")
     res = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0
-    for cmd in ("build", "import", "validate", "list"):
+    for cmd in ("build", "import", "--no-plan-grasps", "validate", "list"):
         assert cmd in res.stdout

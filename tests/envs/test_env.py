@@ -55,14 +55,13 @@ def test_observation_groups_shapes_and_dtypes(mixed_env):
 def test_random_actions_stay_finite(mixed_env):
     env = mixed_env
     gen = torch.Generator().manual_seed(0)
-    for _ in range(300):
+    for _ in range(env.max_episode_length + 10):
         obs, rew, done, extras = env.step(torch.rand(2, env.num_actions, generator=gen) * 2 - 1)
         assert torch.isfinite(obs["policy"]).all() and torch.isfinite(obs["privileged"]).all()
         assert torch.isfinite(rew).all()
         assert set(extras) >= {"time_outs", "log"}
     assert env.nonfinite_resets == 0
-    # 300 steps span a whole training episode, so both worlds were reset once at least.
-    assert env.max_episode_length <= 300
+    # The steps span a whole training episode, so both worlds were reset once at least.
 
 
 def test_same_seed_same_rollout():

@@ -110,3 +110,25 @@ def test_ablation_table_layout():
     assert lines[3] == f"| s_lift | 80.0 [58.4, 91.9] | {W5} |"
     assert lines[4] == f"| s_disturb | 50.0 [29.9, 70.1] | {W0} |"
     assert lines[5] == "| episodes | 20 | 10 |"
+
+
+def test_outcome_and_grasp_type_tables_count_by_hand() -> None:
+    from d3grasp.eval.metrics import grasp_type_markdown, outcomes_markdown
+
+    def ep(grasp: str, lift: bool, disturb: bool, failure: str | None) -> dict:
+        return {"grasp_type": grasp, "s_lift": lift, "s_disturb": disturb, "failure": failure}
+
+    base = [
+        ep("top", True, True, None),
+        ep("top", False, False, "no grasp"),
+        ep("side", False, False, "no grasp"),
+    ]
+    policy = [ep("pinch", True, False, "lost under a push (-z)")]
+    table = outcomes_markdown({"baseline": base, "policy": policy})
+    rows = {line.split(" | ")[0].strip("| "): line for line in table.splitlines()[2:]}
+    assert rows["held through the pushes"] == "| held through the pushes | 1 | 0 |"
+    assert rows["no grasp"] == "| no grasp | 2 | 0 |"
+    assert rows["lost under a push (-z)"] == "| lost under a push (-z) | 0 | 1 |"
+    assert list(rows)[0] == "held through the pushes" and len(rows) == 3
+    by_type = grasp_type_markdown({"baseline": base}).splitlines()[2]
+    assert "| 50.0 [" in by_type and "(n=2)" in by_type and "(n=1)" in by_type and "(n=0)" in by_type

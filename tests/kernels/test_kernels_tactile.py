@@ -136,6 +136,49 @@ def test_only_pad_rows_count_with_signs() -> None:
     np.testing.assert_allclose(got, expected, atol=1e-6)
 
 
+def test_object_only_counts_contacts_with_the_object() -> None:
+    """Hand-made rows: a pad pressing the table (shape 0, static) and a pad touching the palm are no
+    touch of the object; a pad on the object shape counts with its sign either way round, and a soft
+    contact (a pad on an object particle) always counts."""
+    rng = np.random.default_rng(23)
+    scene = build_scene(rng)
+    pad_shapes = np.nonzero(scene["shape_pad"] >= 0)[0]
+    a, b = pad_shapes[0], pad_shapes[1]  # two pads of world 0
+    palm, obj, table = 1 + NUM_PADS, 2 + NUM_PADS, 0
+    is_object = np.zeros(NUM_SHAPES, dtype=bool)
+    is_object[obj] = True
+    c = dict(
+        s0=np.array([a, table, a, obj, b]),
+        s1=np.array([table, b, palm, a, obj]),
+        soft_shape=np.array([b]),
+        f=np.zeros((6, 6)),
+        n_rigid=5,
+        n_soft=1,
+        rmax=5,
+    )
+    c["f"][:, :3] = [[0, 0, 30], [0, 0, 20], [1, 0, 0], [0, 2, 0], [0, 0, 4], [0.5, 0, 0]]
+    layout, contacts, contact_f = to_device(scene, c)
+    layout = TactileLayout.from_arrays(
+        scene["shape_pad"],
+        scene["shape_world"],
+        scene["shape_body"],
+        scene["shape_rot"],
+        W,
+        shape_is_object=is_object,
+    )
+    out = wp.zeros((W, NUM_PADS), dtype=wp.vec3)
+    accumulate_pad_forces(layout, contacts, contact_f, out, object_only=True)
+    expected = np.zeros((W, NUM_PADS, 3))
+    expected[0, scene["shape_pad"][a]] = [0, -2, 0]  # the object (shape0) pushes pad a (shape1): -f
+    expected[0, scene["shape_pad"][b]] = [0.5, 0, 4]  # pad b on the object (+f) and a soft contact
+    np.testing.assert_allclose(out.numpy(), expected, atol=1e-6)
+    # All contacts: the table's 30 N and 20 N and the palm's 1 N are in the reading.
+    accumulate_pad_forces(layout, contacts, contact_f, out)
+    got = out.numpy()
+    np.testing.assert_allclose(got[0, scene["shape_pad"][a]], [1, -2, 30], atol=1e-6)
+    np.testing.assert_allclose(got[0, scene["shape_pad"][b]], [0.5, 0, -16], atol=1e-6)
+
+
 def test_pad_frame_rotation_saturation_contact() -> None:
     rng = np.random.default_rng(22)
     scene = build_scene(rng)

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from d3grasp.envs.grasps import choose_grasp, grasp_pose, rot_z
+from d3grasp.envs.grasps import GraspPose, choose_grasp, grasp_pose, rot_z
 from d3grasp.envs.scene import OBJECT_SOFT, palm_world_pose_to_free_q, palm_world_pose_to_root_q
 from d3grasp.vocabulary import GRASP_TYPES
 
@@ -104,9 +104,9 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
     if env.perception is not None:
         # The planner sees the camera's estimate; the truth only scores its error.
         plan_pos, plan_yaw, plan_ex = _perceive(env, w, obj_pos, qz, yaw, ex, placed)
-    grasp = _choose_grasp(env, plan_ex)
-    _set_hand(env, w, arrays, grasp_pose(grasp, plan_pos, plan_yaw, plan_ex, table))
-    env.grasp_id[w] = GRASP_TYPES.index(grasp)
+    pose = _plan_grasp(env, w, e.id, plan_pos, plan_yaw, plan_ex, estimated=env.perception is not None)
+    _set_hand(env, w, arrays, pose)
+    env.grasp_id[w] = GRASP_TYPES.index(pose.grasp)
     env.object_start[w] = torch.as_tensor(obj_pos, dtype=torch.float32)
     if not soft:
         q0 = lay.object_joint_q[w]
@@ -122,15 +122,38 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
         arrays.tet_materials[t0 : t0 + nt, :2] = env.nominal_tet_materials[t0 : t0 + nt, :2] * scale
 
 
-def _choose_grasp(env: GraspEnv, extents: np.ndarray) -> str:
+def _plan_grasp(
+    env: GraspEnv, w: int, object_id: str, pos: np.ndarray, yaw: float, extents: np.ndarray, estimated: bool
+) -> GraspPose:
+    """World ``w``'s grasp: the planner's override for this world (``env.grasp_override``, as the
+    grasp planner scores its candidates), else the object's stored grasp of the library's grasp file
+    (``env.grasp_plan``: the best measured of the allowed types, or a random allowed type in
+    ``grasp_mode="sample"``), else the geometric rule on the object's size."""
     allowed = tuple(env.cfg.grasp_types)
+    override = env.grasp_override[w] if env.grasp_override is not None else None
+    if override is not None:
+        return override.place(pos, yaw)
+    stored = env.grasp_plan.get(object_id) if env.grasp_plan is not None else None
+    if stored:
+        types = [g for g in allowed if g in stored.grasps]
+        if types:
+            if env.cfg.grasp_mode == "sample":
+                name = types[int(env.rng.integers(len(types)))]
+            else:
+                name = max(types, key=lambda g: stored.scores[g])
+            if estimated:
+                yaw = stored.align_yaw(yaw, extents)
+            return stored.grasps[name].place(pos, yaw)
     if env.cfg.grasp_mode == "sample":
-        return allowed[int(env.rng.integers(len(allowed)))]
-    return choose_grasp(extents, allowed, env.cfg.sim.table_height)
+        grasp = allowed[int(env.rng.integers(len(allowed)))]
+    else:
+        grasp = choose_grasp(extents, allowed, env.cfg.sim.table_height)
+    return grasp_pose(grasp, pos, yaw, extents, env.cfg.sim.table_height)
 
 
-def _set_hand(env: GraspEnv, w: int, arrays: ModelArrays, gp) -> None:
-    """The open hand at the pre-grasp pose of grasp pose ``gp`` (the script starts from there)."""
+def _set_hand(env: GraspEnv, w: int, arrays: ModelArrays, gp: GraspPose) -> None:
+    """The open hand, in the grasp's pre-shape, at the pre-grasp pose of ``gp`` (the script starts
+    from there)."""
     lay = env.layout
     pre = gp.palm_pos - env.cfg.phases.pregrasp_clearance * gp.approach_dir
     root = (
@@ -142,8 +165,10 @@ def _set_hand(env: GraspEnv, w: int, arrays: ModelArrays, gp) -> None:
     if not lay.kinematic_palm:
         arrays.joint_target[lay.root_q[w]] = root
     env.root_q_cmd[w] = torch.as_tensor(root, dtype=torch.float32)
-    arrays.joint_q[lay.finger_q[w]] = env.open_pose.cpu().numpy()
-    arrays.joint_target[lay.finger_q[w]] = env.open_pose.cpu().numpy()
+    env.preshape[w] = torch.as_tensor(gp.preshape, dtype=torch.float32)
+    open_pose = env.open_pose_of(torch.as_tensor([w], device=env.torch_device))[0].cpu().numpy()
+    arrays.joint_q[lay.finger_q[w]] = open_pose
+    arrays.joint_target[lay.finger_q[w]] = open_pose
     env.grasp_palm_pos[w] = torch.as_tensor(gp.palm_pos, dtype=torch.float32)
     env.grasp_palm_quat[w] = torch.as_tensor(gp.palm_quat, dtype=torch.float32)
     env.approach_dir[w] = torch.as_tensor(gp.approach_dir, dtype=torch.float32)
@@ -209,12 +234,16 @@ def _reset_bookkeeping(env: GraspEnv, env_ids: torch.Tensor) -> None:
     env.episode_length_buf[env_ids] = 0
     env.actions[env_ids] = env.reset_action
     env.action_hist[env_ids] = env.reset_action
-    env.finger_target[env_ids] = env.open_pose
+    env.finger_target[env_ids] = env.open_pose_of(env_ids)
     env.residual[env_ids] = 0.0
     if env.residual_base is not None:
         env.residual_base.reset(env_ids)
     env.t_object_force[env_ids] = 0.0
     env.s_grasp[env_ids] = False
+    env.lift_start[env_ids] = env.phase_start["lift"]
+    env.touch_steps[env_ids] = 0
+    env.max_rise[env_ids] = 0.0
+    env.max_push_motion[env_ids] = 0.0
     env.lift_ok[env_ids] = True
     env.disturb_ok[env_ids] = True
     env.max_strain[env_ids] = 0.0

@@ -7,25 +7,76 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from d3grasp.dexhand13 import OPPOSING_PADS, THUMB_PADS
+from d3grasp.envs.script import DISTURB_NAMES
 from d3grasp.envs.sensors import wp_view
 from d3grasp.vocabulary import GRASP_TYPES
 
 if TYPE_CHECKING:
     from d3grasp.envs.grasp_env import GraspEnv
 
-GRASP_CONTACT_FORCE = 0.3  # N: a pad "in contact" for s_grasp
+GRASP_CONTACT_FORCE = 0.3  # N: a pad touching the object (its contacts with the object alone)
 LIFT_TOLERANCE = 0.02  # m: s_lift needs the object raised by lift_height - this during the hold
+ROSE_WITH_PALM = 0.02  # m: an object that rose this far during the lift was lifted (then slipped)
 DISTURB_TOLERANCE = 0.02  # m: s_disturb allows this much motion relative to the palm per push
 PUSHED_OFF_DISTANCE = 0.25  # m of horizontal travel from the object's start: it left the table
 BLOWUP_PAD_FORCE = 500.0  # N on one pad: the contact solve diverged
+
+FAILURES: tuple[str, ...] = (
+    "no grasp",  # the pads never showed a grasp of the object and it was not lifted
+    "not lifted",  # a grasp by touch, but the object never rose with the palm
+    "slipped during the lift",  # it rose with the palm, then slid out before the lift's end
+    "dropped in the hold",  # up at the lift's end, below the lift height during the hold
+    *(f"lost under a push ({d})" for d in DISTURB_NAMES),  # moved > 2 cm against the palm in a push
+    "pushed off the table",
+    "contact blow-up",
+    "non-finite state",
+)
+"""Why an episode failed, the first cause of each episode (``episode_records``' ``failure``)."""
+
+
+def pad_grasp(pad_force_object: torch.Tensor) -> torch.Tensor:
+    """(W,) bool: the pads show a grasp of the object: a thumb pad and an opposing finger pad each
+    with more than ``GRASP_CONTACT_FORCE`` of contact force from the object (table contacts never
+    count: ``pad_force_object`` holds the contacts with the object alone)."""
+    f = torch.linalg.norm(pad_force_object, dim=-1)
+    thumb = (f[:, list(THUMB_PADS)] > GRASP_CONTACT_FORCE).any(-1)
+    opposing = (f[:, list(OPPOSING_PADS)] > GRASP_CONTACT_FORCE).any(-1)
+    return thumb & opposing
 
 
 def score(
     env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor, finite: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Update every world's success metrics after step ``t``; return (done, time_out)."""
+    _time_lift(env, t)
     _update_metrics(env, t, obj_pos)
     return _terminations(env, t, obj_pos, finite)
+
+
+def _time_lift(env: GraspEnv, t: torch.Tensor) -> None:
+    """Touch-timed lift: a world whose pads have shown a grasp (or whose rule-closed fingers have
+    all stopped on the object) for ``grasp_settle`` s in a row during the grasp phase starts its
+    lift with the next step (else at the grasp phase's end)."""
+    ph = env.cfg.phases
+    if not ph.lift_on_touch:
+        return
+    waiting = (t >= env.phase_start["grasp"]) & (t < env.lift_start)
+    touch = pad_grasp(env.t_pad_force_object)
+    if env.residual_base is not None:
+        # The rule runs inside the env (residual action modes): a hand closed as far as the object
+        # lets it is ready too (a hook or a palm grasp need not touch with the thumb's pads).
+        touch = touch | env.residual_base.settled()
+    env.touch_steps = torch.where(waiting & touch, env.touch_steps + 1, torch.zeros_like(env.touch_steps))
+    settle = max(1, round(ph.grasp_settle / env.dt))
+    ready = waiting & (env.touch_steps >= settle)
+    env.lift_start = torch.where(ready, torch.minimum(t + 1, env.lift_start), env.lift_start)
+
+
+def _fail(env: GraspEnv, worlds: torch.Tensor, reason: str) -> None:
+    """Record ``reason`` for ``worlds`` (W,) bool that have no failure yet (the first cause stays)."""
+    for w in torch.nonzero(worlds).flatten().tolist():
+        if not env.failure[w]:
+            env.failure[w] = reason
 
 
 def _update_metrics(env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor) -> None:
@@ -35,15 +86,22 @@ def _update_metrics(env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor) -> No
     sensors = env.sensors
     if sensors.strain_layout is not None:
         env.max_strain = torch.maximum(env.max_strain, sensors.soft_scalar(sensors.strain_buf.object_eps))
-    # s_grasp: at the end of the grasp phase, a thumb pad and an opposing finger pad in contact.
-    end_grasp = t == script.phase_start["lift"]
-    f = torch.linalg.norm(env.t_pad_force_true, dim=-1)
-    thumb = (f[:, list(THUMB_PADS)] > GRASP_CONTACT_FORCE).any(-1)
-    opposing = (f[:, list(OPPOSING_PADS)] > GRASP_CONTACT_FORCE).any(-1)
-    env.s_grasp = torch.where(end_grasp, thumb & opposing, env.s_grasp)
+    # s_grasp: when the lift starts, a thumb pad and an opposing finger pad touch the object.
+    env.s_grasp = torch.where(t == env.lift_start, pad_grasp(env.t_pad_force_object), env.s_grasp)
+    lifting = (t >= env.lift_start) & (t <= script.phase_start["hold"])
+    env.max_rise = torch.where(lifting, torch.maximum(env.max_rise, rise), env.max_rise)
     # s_lift: raised by lift_height (within tolerance) through the whole hold phase.
     in_hold = (t > script.phase_start["hold"]) & (t <= script.phase_start["disturb"])
-    env.lift_ok &= ~(in_hold & (rise < ph.lift_height - LIFT_TOLERANCE))
+    low = in_hold & (rise < ph.lift_height - LIFT_TOLERANCE) & env.lift_ok
+    if low.any():
+        # Down at the first step of the hold: it never got up (or slid out on the way); later: dropped.
+        first = t == script.phase_start["hold"] + 1
+        rose = env.max_rise >= ROSE_WITH_PALM
+        _fail(env, low & first & ~rose & ~env.s_grasp, "no grasp")
+        _fail(env, low & first & ~rose & env.s_grasp, "not lifted")
+        _fail(env, low & first & rose, "slipped during the lift")
+        _fail(env, low & ~first, "dropped in the hold")
+    env.lift_ok &= ~low
     # s_disturb: under each push, object motion relative to the palm below the tolerance.
     rel = obj_pos - palm
     k_in = (t - script.phase_start["disturb"] - 1).clamp(min=0) % script.steps_per_push
@@ -51,6 +109,14 @@ def _update_metrics(env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor) -> No
     start_push = in_dist & (k_in == 0)
     env.push_ref = torch.where(start_push[:, None], rel, env.push_ref)
     moved = torch.linalg.norm(rel - env.push_ref, dim=-1)
+    env.max_push_motion = torch.where(in_dist, torch.maximum(env.max_push_motion, moved), env.max_push_motion)
+    lost = in_dist & (moved > DISTURB_TOLERANCE) & env.disturb_ok & env.lift_ok
+    if lost.any():
+        k = ((t - script.phase_start["disturb"] - 1).clamp(min=0) // script.steps_per_push).clamp(max=5)
+        direction = env.disturb_order[torch.arange(env.num_envs, device=t.device), k]
+        for w in torch.nonzero(lost).flatten().tolist():
+            if not env.failure[w]:
+                env.failure[w] = f"lost under a push ({DISTURB_NAMES[int(direction[w])]})"
     env.disturb_ok &= ~(in_dist & (moved > DISTURB_TOLERANCE))
 
 
@@ -64,19 +130,12 @@ def _terminations(env: GraspEnv, t, obj_pos, finite) -> tuple[torch.Tensor, torc
     nonfinite = ~finite
     env.nonfinite_resets += int(nonfinite.sum())
     time_out = t >= env.max_episode_length
+    for w in torch.nonzero(nonfinite).flatten().tolist():
+        env.failure[w] = "non-finite state"  # overrides: a broken simulation scores nothing
+    _fail(env, blowup, "contact blow-up")
+    _fail(env, pushed_off, "pushed off the table")
+    # A dropped object was labelled by the metrics when it went below the lift height.
     done = pushed_off | dropped | blowup | nonfinite | time_out
-    for w in torch.nonzero(done & ~time_out).flatten().tolist():
-        if env.failure[w] and not nonfinite[w]:
-            continue  # evaluation runs on after a failure: keep the first cause
-        env.failure[w] = (
-            "non-finite state"
-            if nonfinite[w]
-            else "contact blow-up"
-            if blowup[w]
-            else "pushed off the table"
-            if pushed_off[w]
-            else "dropped"
-        )
     if env.cfg.eval_mode:
         # Evaluation scores whole episodes: only a broken simulation ends one early.
         done = nonfinite | time_out
@@ -98,16 +157,11 @@ def episode_records(env: GraspEnv, finished: torch.Tensor) -> list[dict[str, Any
             and env.script.disturb_dirs > 0
         )
         failure = env.failure[w] or None
-        if failure is None:
-            failure = (
-                None
-                if s_disturb
-                else "moved under disturbance"
-                if s_lift
-                else "not lifted"
-                if bool(env.s_grasp[w])
-                else "no grasp"
-            )
+        if failure is None and not s_disturb:
+            # An episode cut short before its pushes (training: none or fewer than six) or its hold.
+            failure = "not lifted" if not s_lift else None
+        if s_disturb:
+            failure = None
         records.append(
             {
                 "env": w,
@@ -121,6 +175,8 @@ def episode_records(env: GraspEnv, finished: torch.Tensor) -> list[dict[str, Any
                 "s_disturb": s_disturb,
                 "failure": failure,
                 "max_strain": float(env.max_strain[w]),
+                "max_rise": float(env.max_rise[w]),
+                "max_push_motion": float(env.max_push_motion[w]),
                 "return": float(env.episode_return[w]),
                 "length": int(t[w]),
                 **env.loc_records[w],  # camera perception: the episode's localisation error

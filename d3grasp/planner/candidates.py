@@ -1,0 +1,128 @@
+"""Candidate grasps of one object, in its frame, from its geometry.
+
+For each of the three grasp types the type's geometric placement (``d3grasp.envs.grasps``) is the
+first candidate; the others vary what decides whether a closing hand holds the object:
+
+- which horizontal side the fingers wrap (the short one, or the long one);
+- where the object sits in the hand: from deep under the palm, its top just off the palm face (a
+  power grasp, which large objects need: the fingers reach 10 cm past the palm), to just in front
+  of the palm's front face (the hook), and across the palm towards the thumb;
+- the hand's pitch, for objects lower than the curling finger tips reach (< 5 cm): a palm-down hand
+  tipped by up to 0.35 rad keeps its finger tips off the table while they close;
+- the pre-shape (abduction of the fingers' first joints): fingers spread or together, the thumb
+  rotated towards or away from the fingers.
+
+Candidates are drawn from a generator seeded by the planner's seed and the object's id, so a plan is
+the same on every run and does not depend on which other objects are planned with it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from d3grasp.envs.grasps import GRASPS, PALM_FACE_Z, PALM_FRONT_X, ObjectGrasp, object_grasp, rot_z
+from d3grasp.vocabulary import GRASP_TYPES
+
+LOW_OBJECT = 0.05  # m: below this height the curling finger tips meet the table (envs/grasps.py)
+MAX_PITCH = 0.35  # rad
+MAX_SPREAD = 0.35  # rad: the abduction joints' range (DexHand13: +-0.35)
+
+
+@dataclass(frozen=True)
+class CandidateConfig:
+    """How many candidates per grasp type and where they put the object in the hand."""
+
+    per_type: int = 10  # the geometric placement and per_type - 1 drawn ones
+    # Soft objects: a step of a FEM body costs ~6x a rigid one's (246-1026 tets), and a squeeze
+    # conforms to the hand, so fewer placements are drawn.
+    per_type_soft: int = 4
+    types: tuple[str, ...] = GRASP_TYPES
+    # The object's near face along the fingers (palm-frame x): from deep under the palm (a power
+    # grasp against the palm face) to just in front of the palm's front face (the hook).
+    under_palm: float = 0.8  # at most this share of the object's length under the palm
+    front_gap: float = 0.02  # m, at most this far in front of the palm's front face
+    lateral: tuple[float, float] = (-0.045, 0.0)  # m, object centre across the palm (- thumb side)
+    # Object's face nearest the palm (palm-frame z) when under the palm: just off the palm face.
+    under_top: tuple[float, float] = (PALM_FACE_Z + 0.0015, PALM_FACE_Z + 0.012)
+    front_top: tuple[float, float] = (0.0, 0.03)  # m, in front of the palm (the front face backs it)
+
+
+def object_seed(seed: int, object_id: str) -> int:
+    """A generator seed for one object: the planner's seed and the object's id, nothing else."""
+    digest = hashlib.sha256(f"{seed}:{object_id}".encode()).digest()
+    return int.from_bytes(digest[:8], "little")
+
+
+def rest_height(extents: np.ndarray) -> float:
+    """Height of an upright object's centre above the table as the environment places it."""
+    return 0.5 * float(extents[2]) + 0.001
+
+
+def candidates(
+    object_id: str,
+    extents: np.ndarray,
+    seed: int = 0,
+    cfg: CandidateConfig | None = None,
+    soft: bool = False,
+) -> list[ObjectGrasp]:
+    """The candidate grasps of an object of ``extents`` (its bounding box, object frame), in order:
+    per type the geometric placement first, then the drawn ones."""
+    cfg = cfg or CandidateConfig()
+    per_type = cfg.per_type_soft if soft else cfg.per_type
+    ex = np.asarray(extents, dtype=np.float64)
+    rng = np.random.default_rng(object_seed(seed, object_id))
+    h = rest_height(ex)
+    low = float(ex[2]) < LOW_OBJECT
+    out: list[ObjectGrasp] = []
+    for grasp in cfg.types:
+        vertical = GRASPS[grasp].palm_vertical
+        if vertical and not object_grasp(grasp, ex, h).feasible:
+            continue  # the side wrap's lower edge would meet the table
+        out.append(object_grasp(grasp, ex, h))
+        drawn = 0
+        while drawn < per_type - 1:
+            long_side = bool(rng.random() < 0.3) and abs(float(ex[0] - ex[1])) > 0.005
+            along = float(min(ex[0], ex[1]) if not long_side else max(ex[0], ex[1]))
+            near_x = float(rng.uniform(PALM_FRONT_X - cfg.under_palm * along, PALM_FRONT_X + cfg.front_gap))
+            under = near_x < PALM_FRONT_X - 0.002
+            top = float(rng.uniform(*(cfg.under_top if under else cfg.front_top)))
+            lateral = float(rng.uniform(*cfg.lateral))
+            pitch = float(rng.uniform(0.0, MAX_PITCH)) if low and not vertical else 0.0
+            spread = float(rng.uniform(-0.5, 0.5)) * MAX_SPREAD
+            thumb = float(rng.uniform(-1.0, 1.0)) * MAX_SPREAD
+            preshape = (-spread, 0.0, spread, thumb)  # index and ring fan out (or in) symmetrically
+            g = object_grasp(
+                grasp,
+                ex,
+                h,
+                long_side=long_side,
+                near_face_x=near_x,
+                lateral_y=lateral,
+                top_z=top,
+                pitch=pitch,
+                preshape=preshape,
+            )
+            drawn += 1
+            if g.feasible:
+                out.append(g)
+    return out
+
+
+def perturbed(grasp: ObjectGrasp, offset_xy: tuple[float, float], yaw: float) -> ObjectGrasp:
+    """``grasp`` for an object found ``offset_xy`` (m) and ``yaw`` (rad) away from where it is: the
+    planner's robustness trials (a perception error of the camera's class, ~5 mm)."""
+    from d3grasp.authoring.hand import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+
+    r = rot_z(yaw)
+    off = np.array([offset_xy[0], offset_xy[1], 0.0])
+    return ObjectGrasp(
+        grasp=grasp.grasp,
+        palm_pos=r @ grasp.palm_pos + off,
+        palm_quat=matrix_to_quat_xyzw(r @ quat_xyzw_to_matrix(grasp.palm_quat)),
+        approach_dir=r @ grasp.approach_dir,
+        feasible=grasp.feasible,
+        preshape=grasp.preshape,
+    )

@@ -1,0 +1,176 @@
+"""Success metrics and failure reasons on hand-made episodes: object paths and pad forces written by
+hand, scored by ``d3grasp.envs.mdp.terminations`` step by step as the environment does."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+import warp as wp
+
+from d3grasp.dexhand13 import NUM_PADS, OPPOSING_PADS, THUMB_PADS
+from d3grasp.envs.config import GraspEnvConfig
+from d3grasp.envs.mdp import terminations
+from d3grasp.envs.script import EpisodeScript
+
+wp.config.log_level = wp.LOG_WARNING
+LIFT = 0.1
+
+
+def _env(num_worlds: int, lift_on_touch: bool = True) -> SimpleNamespace:
+    cfg = GraspEnvConfig(eval_mode=True)
+    cfg.phases.disturb_per_direction = 0.1  # 6 steps a push
+    cfg.phases.lift_on_touch = lift_on_touch
+    script = EpisodeScript(cfg.phases, cfg.sim.control_hz, eval_mode=True)
+    W = num_worlds
+    return SimpleNamespace(
+        cfg=cfg,
+        script=script,
+        dt=1.0 / cfg.sim.control_hz,
+        phase_start=script.phase_start,
+        max_episode_length=script.max_episode_length,
+        num_envs=W,
+        lift_start=torch.full((W,), script.phase_start["lift"], dtype=torch.long),
+        touch_steps=torch.zeros(W, dtype=torch.long),
+        t_pad_force_object=torch.zeros(W, NUM_PADS, 3),
+        t_pad_force_true=torch.zeros(W, NUM_PADS, 3),
+        residual_base=None,
+        state_0=SimpleNamespace(body_q=wp.zeros(W, dtype=wp.transform)),
+        i_palm=torch.arange(W),
+        object_start=torch.zeros(W, 3),
+        sensors=SimpleNamespace(strain_layout=None),
+        s_grasp=torch.zeros(W, dtype=torch.bool),
+        lift_ok=torch.ones(W, dtype=torch.bool),
+        disturb_ok=torch.ones(W, dtype=torch.bool),
+        max_rise=torch.zeros(W),
+        max_push_motion=torch.zeros(W),
+        push_ref=torch.zeros(W, 3),
+        disturb_order=torch.arange(6).expand(W, 6).clone(),
+        failure=["" for _ in range(W)],
+        nonfinite_resets=0,
+        episode_length_buf=torch.zeros(W, dtype=torch.long),
+        world_entries=[
+            SimpleNamespace(id=f"o{w}", kind="rigid", family="box", size_bin="small") for w in range(W)
+        ],
+        grasp_id=torch.zeros(W, dtype=torch.long),
+        max_strain=torch.zeros(W),
+        episode_return=torch.zeros(W),
+        loc_records=[{} for _ in range(W)],
+    )
+
+
+def _grasp_forces(on_table: bool = False) -> torch.Tensor:
+    """Pad forces of a thumb pad and an opposing pad pressing with 2 N."""
+    f = torch.zeros(NUM_PADS, 3)
+    f[THUMB_PADS[-1], 2] = -2.0
+    f[OPPOSING_PADS[-1], 2] = -2.0
+    return f
+
+
+def _run(env, object_path, palm_path, object_pads, table_pads=None):
+    """Step the scoring through a whole episode; ``*_path(t)`` give (W, 3) positions at step t."""
+    W = env.num_envs
+    for t in range(1, env.max_episode_length + 1):
+        tt = torch.full((W,), t, dtype=torch.long)
+        env.t_pad_force_object = object_pads(t)
+        env.t_pad_force_true = object_pads(t) + (table_pads(t) if table_pads else 0.0)
+        palm = palm_path(t).numpy()
+        env.state_0.body_q = wp.array(
+            np.concatenate([palm, np.tile([0, 0, 0, 1.0], (W, 1))], axis=1).astype(np.float32),
+            dtype=wp.transform,
+        )
+        obj = object_path(t)
+        terminations.score(env, tt, obj, torch.ones(W, dtype=torch.bool))
+        env.episode_length_buf = tt
+    return terminations.episode_records(env, torch.arange(W))
+
+
+def _rise_profile(env, t: int, lift_start: int) -> float:
+    steps = env.script.phase_steps["lift"]
+    s = min(max((t - lift_start) / steps, 0.0), 1.0)
+    return LIFT * (0.5 - 0.5 * np.cos(np.pi * s))
+
+
+def test_failure_reasons_from_hand_made_episodes() -> None:
+    env = _env(6, lift_on_touch=False)
+    ps = env.phase_start
+    lift0, hold0, dist0 = ps["lift"], ps["hold"], ps["disturb"]
+    push = env.script.steps_per_push
+    palm_up = lambda t: _rise_profile(env, t, lift0)  # noqa: E731
+
+    def object_path(t: int) -> torch.Tensor:
+        z = np.zeros(6)
+        z[2] = min(palm_up(t), 0.05) if t < lift0 + 40 else 0.0  # rose 5 cm, then slid out
+        z[3] = palm_up(t) if t <= hold0 + 5 else 0.0  # up at the hold, dropped in it
+        z[4] = palm_up(t)  # held...
+        z[5] = palm_up(t)  # held through everything
+        pos = torch.zeros(6, 3)
+        pos[:, 2] = torch.as_tensor(z, dtype=torch.float32)
+        if t > dist0 + 2 * push + 2:  # ...until the third push (+y) moves it 3 cm against the palm
+            pos[4, 1] = 0.03
+        return pos
+
+    def palm_path(t: int) -> torch.Tensor:
+        p = torch.zeros(6, 3)
+        p[:, 2] = 0.05 + palm_up(t)
+        return p
+
+    grasped = _grasp_forces()
+
+    def object_pads(t: int) -> torch.Tensor:
+        f = torch.zeros(6, NUM_PADS, 3)
+        f[1:] = grasped  # world 0: its pads press the table only (below)
+        return f
+
+    def table_pads(t: int) -> torch.Tensor:
+        f = torch.zeros(6, NUM_PADS, 3)
+        f[0] = 10.0 * grasped  # 20 N on the table: no grasp of the object
+        return f
+
+    recs = _run(env, object_path, palm_path, object_pads, table_pads)
+    assert [r["failure"] for r in recs] == [
+        "no grasp",
+        "not lifted",
+        "slipped during the lift",
+        "dropped in the hold",
+        "lost under a push (+y)",
+        None,
+    ]
+    assert [r["s_grasp"] for r in recs] == [False, True, True, True, True, True]
+    assert [r["s_lift"] for r in recs] == [False, False, False, False, True, True]
+    assert [r["s_disturb"] for r in recs] == [False, False, False, False, False, True]
+    assert recs[4]["max_push_motion"] == pytest.approx(0.03, abs=1e-6)
+    assert recs[2]["max_rise"] == pytest.approx(0.05, abs=1e-6)
+
+
+def test_lift_starts_once_the_pads_show_a_grasp_for_the_settle_time() -> None:
+    env = _env(2)
+    settle = round(env.cfg.phases.grasp_settle / env.dt)
+    touch_at = env.phase_start["grasp"] + 10
+
+    def object_pads(t: int) -> torch.Tensor:
+        f = torch.zeros(2, NUM_PADS, 3)
+        if t >= touch_at:
+            f[0] = _grasp_forces()  # world 0 grasps; world 1 only ever touches with the thumb
+            f[1, THUMB_PADS[0], 2] = -3.0
+        return f
+
+    zero = lambda t: torch.zeros(2, 3)  # noqa: E731
+    _run(env, zero, zero, object_pads)
+    assert int(env.lift_start[0]) == touch_at + settle  # the step after `settle` steps of touch
+    assert int(env.lift_start[1]) == env.phase_start["lift"]  # no grasp: the grasp phase's time out
+    # The phase follows each world's own lift start.
+    t = torch.tensor([touch_at + settle, touch_at + settle])
+    phases = env.script.phase_of(t, env.lift_start)
+    assert phases.tolist() == [2, 1]  # lift, grasp
+
+
+def test_pad_grasp_needs_the_thumb_and_an_opposing_pad() -> None:
+    f = torch.zeros(4, NUM_PADS, 3)
+    f[0] = _grasp_forces()
+    f[1, THUMB_PADS[0], 0] = 5.0  # thumb alone
+    f[2, OPPOSING_PADS[0], 1] = 5.0  # finger alone
+    f[3] = 0.1 * _grasp_forces()  # 0.2 N: below the contact force
+    assert terminations.pad_grasp(f).tolist() == [True, False, False, False]
