@@ -215,5 +215,5 @@ def test_console_script_installed() -> None:
     exe = shutil.which("d3grasp-assets") or str(Path(sys.executable).parent / "d3grasp-assets")
     res = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0
-    for cmd in ("build", "import", "--no-plan-grasps", "validate", "list"):
+    for cmd in ("build", "import", "validate", "list", "plan-grasps"):
         assert cmd in res.stdout
