@@ -24,11 +24,14 @@ def _apply_object_force_kernel(
     object_body: wp.array(dtype=wp.int32),
     particle_start: wp.array(dtype=wp.int32),
     particle_count: wp.array(dtype=wp.int32),
+    particle_mass: wp.array(dtype=float),
     body_f: wp.array(dtype=wp.spatial_vector),
     particle_f: wp.array(dtype=wp.vec3),
 ):
     # One thread per world: the disturbance acts at the rigid body's frame origin (its bounding-box
-    # centre, within millimetres of the centre of mass) or is spread evenly over a soft object's nodes.
+    # centre, within millimetres of the centre of mass) or on a soft object's nodes in proportion to
+    # their mass (a body force: every node accelerates alike and the push strains nothing). An equal
+    # share per node gave a 0.44 mg surface node of sponge_cube_s 5e4 m/s^2 under the 2.5 N push.
     w = wp.tid()
     f = force[w]
     b = object_body[w]
@@ -36,10 +39,13 @@ def _apply_object_force_kernel(
         body_f[b] = body_f[b] + wp.spatial_vector(f, wp.vec3(0.0, 0.0, 0.0))
     n = particle_count[w]
     if n > 0:
-        share = f / float(n)
         p0 = particle_start[w]
+        total = float(0.0)  # noqa: UP018 (Warp: a typed, mutable local)
         for i in range(n):
-            particle_f[p0 + i] = particle_f[p0 + i] + share
+            total += particle_mass[p0 + i]
+        if total > 0.0:
+            for i in range(n):
+                particle_f[p0 + i] = particle_f[p0 + i] + f * (particle_mass[p0 + i] / total)
 
 
 @wp.kernel
@@ -122,7 +128,13 @@ class Physics:
             wp.launch(
                 _apply_object_force_kernel,
                 dim=self.num_worlds,
-                inputs=[self.object_force, self.object_body, self.particle_start, self.particle_count],
+                inputs=[
+                    self.object_force,
+                    self.object_body,
+                    self.particle_start,
+                    self.particle_count,
+                    self.model.particle_mass,
+                ],
                 outputs=[self.state_0.body_f, self.state_0.particle_f],
                 device=self.device,
             )

@@ -164,18 +164,22 @@ def plan_grasps(
         if old.get("planner") == settings:
             data["objects"] = old["objects"]
     sha = {e.id: asset_sha256(resolve_asset_path(manifest, e)) for e in entries}
-    todo = [e for e in entries if data["objects"].get(e.id, {}).get("asset_sha256") != sha[e.id]]
-    if len(todo) < len(entries):
-        log(f"[plan-grasps] {len(entries) - len(todo)} of {len(entries)} planned already ({path.name})")
-    # Fixed groups in library order (rigid objects first: a FEM step costs ~6x a rigid one, and the
-    # two kinds are never mixed in one group): the same batches, so the same plan, on any number of
-    # workers.
+    done = {e.id for e in entries if data["objects"].get(e.id, {}).get("asset_sha256") == sha[e.id]}
+    if done:
+        log(f"[plan-grasps] {len(done)} of {len(entries)} planned already ({path.name})")
+    # Fixed groups of the whole selection in library order (rigid objects first: a FEM step costs
+    # ~6x a rigid one, and the two kinds never share a group), whatever is planned already and
+    # however many workers run them: a group's objects share their batches, so the same groups give
+    # the same plan for a seed on any number of cores and after any interruption. A group with an
+    # object left to plan runs whole.
     order = {e.id: k for k, e in enumerate(read_manifest(manifest))}
-    todo.sort(key=lambda e: (e.kind != "rigid", order[e.id]))
     units = []
     for kind in ("rigid", "deformable"):
-        mine = [{"id": e.id, "kind": e.kind, "extents": list(e.extents)} for e in todo if e.kind == kind]
-        units += [mine[k : k + cfg.objects_per_unit] for k in range(0, len(mine), cfg.objects_per_unit)]
+        mine = sorted((e for e in entries if e.kind == kind), key=lambda e: order[e.id])
+        rows = [{"id": e.id, "kind": e.kind, "extents": list(e.extents)} for e in mine]
+        units += [rows[k : k + cfg.objects_per_unit] for k in range(0, len(rows), cfg.objects_per_unit)]
+    units = [u for u in units if any(e["id"] not in done for e in u)]
+    todo = [e for u in units for e in u]
 
     def save(result: dict[str, dict[str, Any]]) -> None:
         for oid, rec in result.items():
