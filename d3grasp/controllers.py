@@ -28,7 +28,7 @@ from d3grasp.policies.checkpoint import (  # noqa: E402
     read_checkpoint,
 )
 
-__all__ = ["Controller", "load_actor", "make_controller"]
+__all__ = ["Controller", "first_episodes", "load_actor", "make_controller"]
 
 
 @dataclass
@@ -110,3 +110,28 @@ def load_actor(
         raise CheckpointError(f"checkpoint {path} does not match the configured networks: {first}") from None
     actor.eval()
     return actor
+
+
+def first_episodes(
+    env: Any, controller: Controller, on_episode: Callable[[], None] | None = None
+) -> list[dict[str, Any]]:
+    """The first finished episode record of every world of ``env`` under ``controller``, by world
+    (evaluation and the grasp planner's trials). ``RuntimeError`` when a world does not finish one
+    within an episode's length."""
+    first: dict[int, dict[str, Any]] = {}
+    obs = env.get_observations()
+    with torch.inference_mode():
+        for _ in range(int(env.max_episode_length)):
+            obs, _, dones, extras = env.step(controller.act(obs).to(env.device))
+            controller.on_dones(dones)
+            for ep in extras.get("episodes", ()):
+                if ep["env"] not in first:
+                    first[ep["env"]] = ep
+                    if on_episode is not None:
+                        on_episode()
+            if len(first) == env.num_envs:
+                break
+    if len(first) != env.num_envs:
+        missing = sorted(set(range(env.num_envs)) - set(first))
+        raise RuntimeError(f"worlds {missing} did not finish an episode in {env.max_episode_length} steps")
+    return [first[w] for w in range(env.num_envs)]

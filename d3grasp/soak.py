@@ -105,11 +105,6 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
 
 
-def _ending(episode: dict[str, Any]) -> str:
-    """How an episode ended: its failure reason, or that it held through the pushes."""
-    return str(episode["failure"]) if episode.get("failure") else "held through the pushes"
-
-
 def run_soak(
     steps: int,
     *,
@@ -130,6 +125,7 @@ def run_soak(
 
     from d3grasp.console import quiet_warp
     from d3grasp.envs import DEFAULT_TASK, close_env, make_env
+    from d3grasp.envs.mdp.terminations import episode_ending
 
     quiet_warp()
 
@@ -192,7 +188,7 @@ def run_soak(
                 ).all(0)
                 report.nonfinite_returned += int((~finite).sum())
                 for ep in extras.get("episodes", ()):
-                    endings[_ending(ep)] += 1
+                    endings[episode_ending(ep)] += 1
                     if ep.get("failure") == "non-finite state":
                         blown[ep["object"]] += 1
                 if bar is not None:

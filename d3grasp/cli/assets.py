@@ -161,15 +161,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     print(f"{len(result.entries)} assets written; manifest {Path(args.out) / 'manifest.json'}")
     if args.plan_grasps and result.entries:
         # The same treatment as a shipped object: candidate grasps scored in simulation.
-        code = cmd_plan_grasps(
-            argparse.Namespace(
-                path=str(Path(args.out) / "manifest.json"),
-                ids=",".join(e.id for e in result.entries),
-                seed=0,
-                workers=None,
-                per_type=None,
-            )
-        )
+        code = _plan_grasps(Path(args.out) / "manifest.json", [e.id for e in result.entries])
         if code:
             return code
     for path, why in result.skipped:
@@ -184,29 +176,36 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def cmd_plan_grasps(args: argparse.Namespace) -> int:
+    ids = [i for i in args.ids.split(",") if i] if args.ids else None
+    return _plan_grasps(_resolve_manifest(args.path), ids, args.seed, args.workers, args.per_type)
+
+
+def _plan_grasps(
+    manifest: Path,
+    ids: list[str] | None,
+    seed: int = 0,
+    workers: int | None = None,
+    per_type: int | None = None,
+) -> int:
+    """Plan ``ids`` (None: every object) of a library and print how many lifted and held."""
     import os
     from dataclasses import replace
 
     from d3grasp.console import quiet_warp
-    from d3grasp.envs.grasp_file import GraspFileError
+    from d3grasp.envs.grasp_file import GraspFileError, read_grasp_file
     from d3grasp.planner.plan import PlannerConfig, plan_grasps
 
     quiet_warp()
-    manifest = _resolve_manifest(args.path)
     if not manifest.is_file():
         return _error(f"{manifest}: manifest not found")
-    cfg = PlannerConfig(seed=args.seed)
-    if args.per_type is not None:
-        cfg = replace(cfg, candidates=replace(cfg.candidates, per_type=args.per_type))
-    workers = args.workers or os.cpu_count() or 1
-    ids = [i for i in args.ids.split(",") if i] if args.ids else None
+    cfg = PlannerConfig(seed=seed)
+    if per_type is not None:
+        cfg = replace(cfg, candidates=replace(cfg.candidates, per_type=per_type))
     t0 = time.perf_counter()
     try:
-        path = plan_grasps(manifest, ids, cfg, workers=workers, progress=True)
+        path = plan_grasps(manifest, ids, cfg, workers=workers or os.cpu_count() or 1, progress=True)
     except (GraspFileError, ValueError, FileNotFoundError) as exc:
         return _error(str(exc))
-    from d3grasp.envs.grasp_file import read_grasp_file
-
     objects = read_grasp_file(path)["objects"]
     held = sum(1 for rec in objects.values() if any(g["trials"]["disturb"] for g in rec["grasps"].values()))
     lifted = sum(1 for rec in objects.values() if any(g["trials"]["lift"] for g in rec["grasps"].values()))

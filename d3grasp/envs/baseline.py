@@ -6,9 +6,7 @@ link distal to it reads more than ``force_threshold`` (N): a finger whose proxim
 object keeps curling its distal links around it, one whose tip meets it stops entirely. This is
 the "close at constant speed until the pads exceed a force threshold" rule applied per joint,
 which is what an under-actuated gripper does mechanically; ``per_joint=False`` stops a whole
-finger at its first touch instead. A joint that cannot follow its target (blocked by a part of the
-finger without a pad, or by the table) can stop the same way (``stall_lag``, off by default). A
-stopped joint keeps a small extra squeeze (``squeeze`` rad
+finger at its first touch instead. A stopped joint keeps a small extra squeeze (``squeeze`` rad
 beyond where it stopped, i.e. ``squeeze * ke`` of drive torque) and holds it through lift, hold and
 disturbance. Abduction joints stay at the middle of their range; fingers the grasp type does not
 use stay open. The thumb's first flexion link carries no pad: its joint stops with the thumb's pads.
@@ -51,11 +49,6 @@ class BaselineConfig:
     force_threshold: float = 0.5  # N on a pad stops the joints proximal to it
     squeeze: float = 0.1  # rad added beyond the stopping point
     per_joint: bool = True  # False: a finger's first touch stops all of its joints
-    # A closing joint whose target runs this far ahead of its position is blocked (a link without a
-    # pad pressing the object, a finger on the table): it stops as on touch instead of winding its
-    # drive up to the joint limit (ke 20 N m/rad: 0.5 rad of lag is 10 N m pressing the object away or
-    # into the table). Free closing lags ~0.05 rad (kd / ke x close_speed plus the links' inertia).
-    stall_lag: float = 0.0  # rad; 0: off
 
 
 def stop_matrix(per_joint: bool = True) -> torch.Tensor:
@@ -89,8 +82,8 @@ def rest_targets(lower: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
 
 
 def rule_settled(state: RuleState, tables: RuleTables, grasp_id: torch.Tensor) -> torch.Tensor:
-    """(W,) bool: every joint the world's grasp type closes has stopped (on touch or blocked): the
-    hand has closed as far as the object lets it."""
+    """(W,) bool: every joint the world's grasp type closes has stopped on touch: the hand has closed
+    as far as the object lets it."""
     uses = tables.grasp_uses[grasp_id]
     return (state.stopped | ~uses).all(-1)
 
@@ -145,8 +138,6 @@ def rule_step(
     """
     force = torch.linalg.norm(pad_force, dim=-1)  # (W, 11)
     touched = (force > cfg.force_threshold).float() @ tables.stops.T > 0  # (W, 16)
-    if cfg.stall_lag > 0.0:
-        touched |= state.target - joint_q > cfg.stall_lag  # blocked: proprioception's touch
     uses = tables.grasp_uses[grasp_id]
     newly = touched & uses & ~state.stopped & closing[:, None]
     if newly.any():

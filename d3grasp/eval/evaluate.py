@@ -27,8 +27,6 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from d3grasp.authoring.manifest import AssetEntry, read_manifest
 from d3grasp.envs import close_env
 from d3grasp.envs.config import GRASP_TYPES
@@ -279,25 +277,11 @@ def _run_batch(
     on_episode: Callable[[], None],
 ) -> list[dict[str, Any]]:
     """First finished episode of every world of ``env`` under the run's policy or the baseline."""
-    from d3grasp.controllers import make_controller  # the same policy / baseline loader as d3grasp-play
+    # The same policy / baseline loader and episode loop as d3grasp-play and the grasp planner.
+    from d3grasp.controllers import first_episodes, make_controller
 
     controller = make_controller(env, run.task, run.checkpoint, settings.device)
-    first: dict[int, dict[str, Any]] = {}
-    obs = env.get_observations()
-    with torch.inference_mode():
-        for _ in range(int(env.max_episode_length)):
-            obs, _, dones, extras = env.step(controller.act(obs).to(env.device))
-            controller.on_dones(dones)
-            for ep in extras.get("episodes", ()):
-                if ep["env"] not in first:
-                    first[ep["env"]] = ep
-                    on_episode()
-            if len(first) == env.num_envs:
-                break
-    if len(first) != env.num_envs:
-        missing = sorted(set(range(env.num_envs)) - set(first))
-        raise RuntimeError(f"worlds {missing} did not finish an episode in {env.max_episode_length} steps")
-    return [first[w] for w in range(env.num_envs)]
+    return first_episodes(env, controller, on_episode)
 
 
 def evaluate(

@@ -132,15 +132,14 @@ def ablation_markdown(
     return "\n".join(lines) + "\n"
 
 
-HELD = "held through the pushes"
-
-
 def outcomes_markdown(runs: Mapping[str, Iterable[Mapping]], title: str = "") -> str:
     """How the episodes ended, one column per run: each failure reason by count (the first cause of
     an episode, ``d3grasp.envs.mdp.terminations.FAILURES``), and the episodes that held."""
-    from d3grasp.envs.mdp.terminations import FAILURES
+    from collections import Counter
 
-    counted = {label: _count_endings(eps) for label, eps in runs.items()}
+    from d3grasp.envs.mdp.terminations import FAILURES, HELD, episode_ending
+
+    counted = {label: Counter(episode_ending(r) for r in eps) for label, eps in runs.items()}
     seen = {k for c in counted.values() for k in c}
     order = [HELD, *FAILURES, *sorted(seen - {HELD, *FAILURES})]
     lines = [f"**{title}**", ""] if title else []
@@ -152,14 +151,6 @@ def outcomes_markdown(runs: Mapping[str, Iterable[Mapping]], title: str = "") ->
                 f"| {ending} | " + " | ".join(str(c.get(ending, 0)) for c in counted.values()) + " |"
             )
     return "\n".join(lines) + "\n"
-
-
-def _count_endings(records: Iterable[Mapping]) -> dict[str, int]:
-    out: dict[str, int] = {}
-    for r in records:
-        key = HELD if r["s_disturb"] else (r.get("failure") or "not scored")
-        out[key] = out.get(key, 0) + 1
-    return out
 
 
 def grasp_type_markdown(runs: Mapping[str, Iterable[Mapping]], title: str = "") -> str:

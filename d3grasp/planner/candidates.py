@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from d3grasp.envs.grasps import GRASPS, PALM_FACE_Z, PALM_FRONT_X, ObjectGrasp, object_grasp, rot_z
+from d3grasp.envs.grasps import GRASPS, PALM_FACE_Z, PALM_FRONT_X, ObjectGrasp, object_grasp
 from d3grasp.vocabulary import GRASP_TYPES
 
 LOW_OBJECT = 0.05  # m: below this height the curling finger tips meet the table (envs/grasps.py)
@@ -113,16 +113,14 @@ def candidates(
 
 def perturbed(grasp: ObjectGrasp, offset_xy: tuple[float, float], yaw: float) -> ObjectGrasp:
     """``grasp`` for an object found ``offset_xy`` (m) and ``yaw`` (rad) away from where it is: the
-    planner's robustness trials (a perception error of the camera's class, ~5 mm)."""
-    from d3grasp.authoring.hand import matrix_to_quat_xyzw, quat_xyzw_to_matrix
-
-    r = rot_z(yaw)
-    off = np.array([offset_xy[0], offset_xy[1], 0.0])
+    planner's robustness trials (a perception error of the camera's class, ~5 mm). The grasp placed
+    at that pose in the object's own frame is the displaced grasp, still in the object's frame."""
+    pose = grasp.place(np.array([offset_xy[0], offset_xy[1], 0.0]), yaw)
     return ObjectGrasp(
         grasp=grasp.grasp,
-        palm_pos=r @ grasp.palm_pos + off,
-        palm_quat=matrix_to_quat_xyzw(r @ quat_xyzw_to_matrix(grasp.palm_quat)),
-        approach_dir=r @ grasp.approach_dir,
+        palm_pos=pose.palm_pos,
+        palm_quat=pose.palm_quat,
+        approach_dir=pose.approach_dir,
         feasible=grasp.feasible,
         preshape=grasp.preshape,
     )

@@ -69,13 +69,15 @@ def plan_unit(
         for g in candidates(e["id"], np.asarray(e["extents"]), cfg.seed, cfg.candidates, soft=soft):
             trials.append(Trial(e["id"], g))
     records = run_trials(trials, manifest, cfg.scoring)
-    scored = [(trial_score(r), t, r) for t, r in zip(trials, records, strict=True)]
+    # Round 1's trials by object and grasp type, in candidate order.
+    by_type: dict[tuple[str, str], list[tuple[float, Trial, dict[str, Any]]]] = {}
+    for t, r in zip(trials, records, strict=True):
+        by_type.setdefault((t.object_id, t.grasp.grasp), []).append((trial_score(r), t, r))
     # Round 2: the finalists of each object and type, displaced.
     finalists: list[tuple[float, Trial, dict[str, Any]]] = []
     for e in entries:
         for grasp_type in cfg.candidates.types:
-            mine = [x for x in scored if x[1].object_id == e["id"] and x[1].grasp.grasp == grasp_type]
-            mine.sort(key=lambda x: -x[0])
+            mine = sorted(by_type.get((e["id"], grasp_type), []), key=lambda x: -x[0])
             finalists += [x for x in mine[: cfg.finalists] if x[2]["s_lift"]]
     retries = [
         Trial(t.object_id, perturbed(t.grasp, (dx, dy), dyaw))
@@ -101,13 +103,14 @@ def plan_unit(
             }
     for e in entries:
         oid = e["id"]
-        out[oid]["candidates"] = sum(1 for t in trials if t.object_id == oid)
-        out[oid]["lifted_nominal"] = sum(1 for s, t, r in scored if t.object_id == oid and r["s_lift"])
+        mine_all = [x for g in cfg.candidates.types for x in by_type.get((oid, g), [])]
+        out[oid]["candidates"] = len(mine_all)
+        out[oid]["lifted_nominal"] = sum(1 for _, _, r in mine_all if r["s_lift"])
         if not out[oid]["grasps"]:
             # Nothing lifted: keep each type's best nominal candidate (by score, then by how far the
             # object rose), so the object still gets the most promising grasp, marked with score 0.
             for grasp_type in cfg.candidates.types:
-                mine = [x for x in scored if x[1].object_id == oid and x[1].grasp.grasp == grasp_type]
+                mine = by_type.get((oid, grasp_type), [])
                 if mine:
                     s, t, r = max(mine, key=lambda x: (x[0], x[2]["max_rise"]))
                     out[oid]["grasps"][grasp_type] = {

@@ -15,8 +15,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import torch
-
 from d3grasp.envs.grasps import ObjectGrasp
 from d3grasp.envs.mdp.terminations import DISTURB_TOLERANCE
 from d3grasp.envs.registry import DEFAULT_TASK
@@ -57,8 +55,9 @@ def run_trials(
     on_batch: Callable[[int], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Episode records of ``trials``, in order (``worlds_per_batch`` worlds per environment)."""
+    from d3grasp.controllers import first_episodes, make_controller
     from d3grasp.envs import close_env, make_env
-    from d3grasp.envs.baseline import RuleBasedController
+    from d3grasp.policies import BASELINE
 
     cfg = cfg or ScoringConfig()
     records: list[dict[str, Any]] = []
@@ -80,18 +79,9 @@ def run_trials(
         try:
             env.grasp_override = [t.grasp for t in chunk]
             env.reset_all()
-            controller = RuleBasedController(env)
-            first: dict[int, dict[str, Any]] = {}
-            with torch.inference_mode():
-                for _ in range(int(env.max_episode_length)):
-                    _, _, _, extras = env.step(controller.act())
-                    for ep in extras.get("episodes", ()):
-                        first.setdefault(ep["env"], ep)
-                    if len(first) == env.num_envs:
-                        break
+            records += first_episodes(env, make_controller(env, cfg.task, BASELINE, cfg.device))
         finally:
             close_env(env)
-        records += [first[w] for w in range(len(chunk))]
         if on_batch is not None:
             on_batch(len(chunk))
     return records

@@ -134,16 +134,14 @@ def _plan_grasp(
     if override is not None:
         return override.place(pos, yaw)
     stored = env.grasp_plan.get(object_id) if env.grasp_plan is not None else None
-    if stored:
-        types = [g for g in allowed if g in stored.grasps]
-        if types:
-            if env.cfg.grasp_mode == "sample":
-                name = types[int(env.rng.integers(len(types)))]
-            else:
-                name = max(types, key=lambda g: stored.scores[g])
-            if estimated:
-                yaw = stored.align_yaw(yaw, extents)
-            return stored.grasps[name].place(pos, yaw)
+    name = stored.best(allowed) if stored else None
+    if name is not None:
+        if env.cfg.grasp_mode == "sample":
+            types = [g for g in allowed if g in stored.grasps]
+            name = types[int(env.rng.integers(len(types)))]
+        if estimated:
+            yaw = stored.align_yaw(yaw, extents)
+        return stored.grasps[name].place(pos, yaw)
     if env.cfg.grasp_mode == "sample":
         grasp = allowed[int(env.rng.integers(len(allowed)))]
     else:

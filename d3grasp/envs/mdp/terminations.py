@@ -32,6 +32,15 @@ FAILURES: tuple[str, ...] = (
     "non-finite state",
 )
 """Why an episode failed, the first cause of each episode (``episode_records``' ``failure``)."""
+HELD = "held through the pushes"
+
+
+def episode_ending(record: dict[str, Any]) -> str:
+    """How an episode record ended: ``HELD``, or its failure reason (``"not scored"`` for a record
+    with neither)."""
+    if record["s_disturb"]:
+        return HELD
+    return str(record.get("failure") or "not scored")
 
 
 def pad_grasp(pad_force_object: torch.Tensor) -> torch.Tensor:
@@ -156,12 +165,8 @@ def episode_records(env: GraspEnv, finished: torch.Tensor) -> list[dict[str, Any
             and int(t[w]) >= start["release"]
             and env.script.disturb_dirs > 0
         )
-        failure = env.failure[w] or None
-        if failure is None and not s_disturb:
-            # An episode cut short before its pushes (training: none or fewer than six) or its hold.
-            failure = "not lifted" if not s_lift else None
-        if s_disturb:
-            failure = None
+        # A failed episode without a recorded cause was cut short before its hold: not lifted.
+        failure = None if s_disturb else env.failure[w] or (None if s_lift else "not lifted")
         records.append(
             {
                 "env": w,
