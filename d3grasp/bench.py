@@ -224,7 +224,12 @@ def _cmd_env(args: argparse.Namespace) -> int:
     quiet_warp()
 
     run_env_benchmark(
-        args.worlds, args.kinds, episodes=args.episodes, device=args.device, overrides=dict(args.overrides)
+        args.worlds,
+        args.kinds,
+        episodes=args.episodes,
+        device=args.device,
+        overrides=dict(args.overrides),
+        procs=args.procs,
     )
     return 0
 
@@ -233,7 +238,15 @@ def _add_env_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("env", help="env-steps/s and physics steps/s, rigid and soft, vs world count")
     p.add_argument("--worlds", type=int, nargs="+", default=[1, 8, 32], help="world counts")
     p.add_argument("--kinds", nargs="+", default=["rigid", "soft"], choices=["rigid", "soft"])
-    from d3grasp.cli.args import add_env_override_arg, positive_float
+    from d3grasp.cli.args import add_env_override_arg, positive_float, positive_int
+
+    p.add_argument(
+        "--procs",
+        type=positive_int,
+        nargs="+",
+        default=[1],
+        help="process counts, each row run in that many at once",
+    )
 
     p.add_argument("--episodes", type=positive_float, default=1.0, help="timed episodes per row (0.5: half)")
     p.add_argument("--device", default="cpu", help="cpu or cuda:N")

@@ -188,11 +188,11 @@ def _plan_grasps(
     per_type: int | None = None,
 ) -> int:
     """Plan ``ids`` (None: every object) of a library and print how many lifted and held."""
-    import os
     from dataclasses import replace
 
     from d3grasp.console import quiet_warp
     from d3grasp.envs.grasp_file import GraspFileError, read_grasp_file
+    from d3grasp.parallel import default_workers
     from d3grasp.planner.plan import PlannerConfig, plan_grasps
 
     quiet_warp()
@@ -203,7 +203,7 @@ def _plan_grasps(
         cfg = replace(cfg, candidates=replace(cfg.candidates, per_type=per_type))
     t0 = time.perf_counter()
     try:
-        path = plan_grasps(manifest, ids, cfg, workers=workers or os.cpu_count() or 1, progress=True)
+        path = plan_grasps(manifest, ids, cfg, workers=workers or default_workers(), progress=True)
     except (GraspFileError, ValueError, FileNotFoundError) as exc:
         return _error(str(exc))
     objects = read_grasp_file(path)["objects"]

@@ -57,6 +57,10 @@ class SimConfig:
     soft_contact_kd: float = 1.0e-2
     soft_contact_mu: float = 1.0
     soft_contact_gap: float = 0.005
+    # m/s, SolverVBD's friction smoothing: body-body contacts ignore it (projected Coulomb); particle
+    # contacts creep below it (a soft puck on the table at half its sliding force: 1.6 mm in 0.5 s at
+    # 1e-2, 0.4 mm at 1e-4; the soft holds in the hand did not change with it).
+    friction_epsilon: float = 1.0e-2
     particle_radius: float = 0.003  # m; Newton's default (0.1 m) explodes small objects
     soft_damping: float | None = None  # override every soft object's damping (else the manifest's)
     table_height: float = 0.0  # z of the table surface (m)

@@ -90,6 +90,7 @@ class Physics:
             self.solver = newton.solvers.SolverVBD(
                 model,
                 iterations=sim.iterations,
+                friction_epsilon=sim.friction_epsilon,
                 rigid_contact_history=True,
                 particle_enable_self_contact=False,
                 rigid_body_contact_buffer_size=sim.body_contact_buffer,

@@ -72,6 +72,12 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--num_envs", type=positive_int, default=16, help="worlds per batch (default 16)")
     p.add_argument("--compare", choices=(BASELINE,), default=None, help="also run the baseline")
     p.add_argument("--device", default="cpu")
+    p.add_argument(
+        "--workers",
+        type=positive_int,
+        default=None,
+        help="processes the batches run in (default: the machine's cores; results do not depend on it)",
+    )
     p.add_argument("--torch_threads", type=positive_int, default=None, help="torch CPU threads (default 1)")
     add_env_override_arg(p, "debugging: override an env config field, e.g. phases.disturb_per_direction=0.1")
     p.add_argument(
@@ -116,7 +122,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
 
     def body() -> None:
-        result = evaluate(settings, progress=not args.no_progress)
+        from d3grasp.parallel import default_workers
+
+        workers = args.workers or (default_workers() if args.device == "cpu" else 1)
+        result = evaluate(settings, progress=not args.no_progress, workers=workers)
         paths = write_outputs(result, args.out)
         print(paths["table"].read_text())
         print(f"[d3grasp-eval] wrote {', '.join(str(p) for p in paths.values())} in {result.wall_s:.1f} s")

@@ -1,7 +1,8 @@
 """Evaluate a policy checkpoint (or the rule-based baseline) on a set of objects, the paper's way.
 
-Every object gets its own world, in batches of ``num_envs`` worlds, with the environment in
-evaluation mode (all six 2-s disturbance pushes, no randomisation of dynamics). Each object is
+Every object gets its own world, in batches of up to ``num_envs`` worlds of one object kind (rigid or
+soft) run in one or more processes, with the environment in evaluation mode (all six 2-s
+disturbance pushes, no randomisation of dynamics). Each object is
 evaluated ``episodes_per_object`` times; repeat ``r`` builds the batch's environment with seed
 ``seed + r``, which draws the object's placement (position and yaw) and the tactile noise. Only
 the first episode of each world counts: in evaluation mode every episode runs to its full length
@@ -51,6 +52,7 @@ OBJECT_SETS: dict[str, tuple[str, ...]] = {
     "all": ("rigid", "deformable"),
 }
 GRASP_CHOICES: tuple[str, ...] = ("all", *GRASP_TYPES)
+SOFT_COST = 6.0  # a soft world's step against a rigid one's (bench env, 8 worlds: 307 / 55)
 SPLITS: tuple[str, ...] = ("test", "train", "all")
 PERCEPTIONS: dict[str, tuple[str, ...]] = {
     "oracle": ("oracle",),
@@ -76,6 +78,7 @@ __all__ = [
     "RunSpec",
     "checkpoint_task",
     "evaluate",
+    "plan_batches",
     "select_objects",
     "write_outputs",
 ]
@@ -284,19 +287,84 @@ def _run_batch(
     return first_episodes(env, controller, on_episode)
 
 
+def _eval_batch(
+    spec: RunSpec,
+    perception: str,
+    chunk: tuple[str, ...],
+    repeat: int,
+    settings: EvalSettings,
+    manifest: str | None,
+    grasp_types: tuple[str, ...],
+    env_factory: Callable[..., Any] | None = None,
+    on_episode: Callable[[], None] = lambda: None,
+) -> list[dict[str, Any]]:
+    """One batch: the objects of ``chunk`` in one environment of seed ``settings.seed + repeat``,
+    each world's first episode. Everything it depends on is in its arguments, so any process can run it."""
+    from d3grasp.envs import make_env
+    from d3grasp.seeding import seed_everything
+
+    seed = settings.seed + repeat
+    objects_cfg: dict[str, Any] = {"ids": chunk}
+    if manifest is not None:
+        objects_cfg["manifest"] = manifest
+    seed_everything(seed)
+    env = (env_factory or make_env)(
+        spec.task,
+        num_envs=len(chunk),
+        device=settings.device,
+        seed=seed,
+        eval_mode=True,
+        objects=objects_cfg,
+        grasp_types=grasp_types,
+        perception=perception,
+        **settings.env_overrides,
+    )
+    try:
+        eps = _run_batch(env, spec, settings, on_episode)
+    finally:
+        close_env(env)
+    return [{**ep, "repeat": repeat, "seed": seed} for ep in eps]
+
+
+def plan_batches(
+    jobs: Sequence[tuple[RunSpec, str]],
+    ids: Sequence[str],
+    kinds: Mapping[str, str],
+    num_envs: int,
+    repeats: int,
+) -> list[tuple[RunSpec, str, tuple[str, ...], int]]:
+    """The evaluation's batches ``(controller, perception, object ids, repeat)``, costliest first.
+
+    A batch holds up to ``num_envs`` objects of one kind, in the order of ``ids``: the solver steps
+    all worlds of an environment together and a soft world costs ~``SOFT_COST`` rigid ones, so a
+    rigid object sharing a batch with soft ones would run at the soft pace. The costliest go first so
+    that worker processes finish together (the results are sorted afterwards either way).
+    """
+    groups = [[i for i in ids if kinds[i] == kind] for kind in dict.fromkeys(kinds[i] for i in ids)]
+    chunks = [tuple(g[s : s + num_envs]) for g in groups for s in range(0, len(g), num_envs)]
+    batches = [(spec, p, chunk, r) for spec, p in jobs for chunk in chunks for r in range(repeats)]
+    batches.sort(key=lambda b: -sum(SOFT_COST if kinds[i] == "deformable" else 1.0 for i in b[2]))
+    return batches
+
+
 def evaluate(
     settings: EvalSettings,
     progress: bool = True,
     log: Callable[[str], None] = print,
     env_factory: Callable[..., Any] | None = None,
+    workers: int = 1,
 ) -> EvalResult:
-    """Run the evaluation; ``CheckpointError`` / ``FileNotFoundError`` / ``ValueError`` on bad input."""
+    """Run the evaluation; ``CheckpointError`` / ``FileNotFoundError`` / ``ValueError`` on bad input.
+
+    The batches (controller x ``num_envs`` objects x repeat) run in ``workers`` processes
+    (d3grasp.parallel); a batch's episodes depend only on its objects and seed, so any number of
+    workers gives the same results. A custom ``env_factory`` runs in this process.
+    """
     import time
 
     from tqdm import tqdm
 
-    from d3grasp.envs import make_env
-    from d3grasp.seeding import seed_everything
+    from d3grasp.parallel import run_units
 
     t0 = time.perf_counter()
     settings.validate()
@@ -313,50 +381,44 @@ def evaluate(
     manifest, entries = select_objects(settings.objects, settings.split, settings.task)
     ids = [e.id for e in entries]
     grasp_types = tuple(GRASP_TYPES) if settings.grasp_types == "all" else (settings.grasp_types,)
-    make = env_factory or make_env
     K, W = settings.episodes_per_object, settings.num_envs
+    kinds = {e.id: e.kind for e in entries}
+    batches = plan_batches(jobs, ids, kinds, W, K)
+    if env_factory is not None:
+        workers = 1
+    workers = max(1, min(workers, len(batches)))
     total = len(ids) * K * len(specs)
     tasks = ", ".join(dict.fromkeys(spec.task for spec in specs))
     log(
         f"[d3grasp-eval] {len(ids)} objects x {K} episodes x {len(specs)} controller(s) = {total} "
-        f"episodes on {tasks}, {W} worlds per batch"
+        f"episodes on {tasks}, {W} worlds per batch, {len(batches)} batches on {workers} process(es)"
     )
+    manifest_arg = str(manifest) if manifest is not None else None
     runs: dict[str, list[dict[str, Any]]] = {spec.label: [] for spec in specs}
     with tqdm(total=total, unit="ep", disable=not progress, dynamic_ncols=True) as bar:
-        for spec, perception in jobs:
-            label = spec.label
-            bar.set_description(label)
-            for start in range(0, len(ids), W):
-                chunk = tuple(ids[start : start + W])
-                objects_cfg: dict[str, Any] = {"ids": chunk}
-                if manifest is not None:
-                    objects_cfg["manifest"] = str(manifest)
-                for r in range(K):
-                    seed_everything(settings.seed + r)
-                    env = make(
-                        spec.task,
-                        num_envs=len(chunk),
-                        device=settings.device,
-                        seed=settings.seed + r,
-                        eval_mode=True,
-                        objects=objects_cfg,
-                        grasp_types=grasp_types,
-                        perception=perception,
-                        **settings.env_overrides,
-                    )
-                    try:
-                        eps = _run_batch(env, spec, settings, lambda: bar.update(1))
-                    finally:
-                        close_env(env)
-                    for ep in eps:
-                        runs[label].append({**ep, "repeat": r, "seed": settings.seed + r})
-            # Object order, then repeat: independent of the batch layout's step order.
-            order = {i: n for n, i in enumerate(ids)}
-            runs[label].sort(key=lambda ep: (order[ep["object"]], ep["repeat"]))
+        if workers == 1:  # in this process: the bar moves per episode
+
+            def one_episode() -> None:
+                bar.update(1)
+
+            units = [(*b, settings, manifest_arg, grasp_types, env_factory, one_episode) for b in batches]
+        else:  # in other processes: the bar moves per batch
+            units = [(*b, settings, manifest_arg, grasp_types) for b in batches]
+
+        def done(k: int, eps: list[dict[str, Any]]) -> None:
+            runs[batches[k][0].label].extend(eps)
+            if workers > 1:
+                bar.update(len(eps))
+
+        run_units(_eval_batch, units, workers, done)
+    # Object order, then repeat: independent of the batch layout and of the order batches finish in.
+    order = {i: n for n, i in enumerate(ids)}
+    for eps in runs.values():
+        eps.sort(key=lambda ep: (order[ep["object"]], ep["repeat"]))
     return EvalResult(
         settings=settings,
         objects=ids,
-        manifest=str(manifest) if manifest is not None else None,
+        manifest=manifest_arg,
         runs=runs,
         wall_s=time.perf_counter() - t0,
         specs={spec.label: spec for spec in specs},

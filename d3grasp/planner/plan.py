@@ -19,7 +19,6 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,6 +32,7 @@ from d3grasp.envs.grasp_file import (
     grasp_file_path,
     read_grasp_file,
 )
+from d3grasp.parallel import run_units
 from d3grasp.planner.candidates import CandidateConfig, candidates, perturbed
 from d3grasp.planner.score import ScoringConfig, Trial, run_trials, trial_score
 
@@ -121,15 +121,6 @@ def plan_unit(
     return out
 
 
-def _unit_worker(
-    manifest: str, entries: list[dict[str, Any]], cfg: PlannerConfig
-) -> dict[str, dict[str, Any]]:
-    from d3grasp.console import quiet_warp
-
-    quiet_warp()
-    return plan_unit(manifest, entries, cfg)
-
-
 def plan_grasps(
     manifest: str | Path,
     ids: Sequence[str] | None = None,
@@ -194,16 +185,10 @@ def plan_grasps(
     with tqdm(
         total=len(todo), unit="obj", disable=not progress, dynamic_ncols=True, desc="plan-grasps"
     ) as bar:
-        if workers <= 1 or len(units) <= 1:
-            for unit in units:
-                save(plan_unit(str(manifest), unit, cfg))
-                bar.update(len(unit))
-        else:
-            import multiprocessing as mp
 
-            with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
-                futures = {pool.submit(_unit_worker, str(manifest), unit, cfg): unit for unit in units}
-                for fut in as_completed(futures):
-                    save(fut.result())
-                    bar.update(len(futures[fut]))
+        def done_unit(k: int, result: dict[str, dict[str, Any]]) -> None:
+            save(result)
+            bar.update(len(units[k]))
+
+        run_units(plan_unit, [(str(manifest), unit, cfg) for unit in units], workers, done_unit)
     return path

@@ -129,10 +129,10 @@ def test_the_environment_places_the_stored_grasp(tmp_path: Path) -> None:
         env.close()
 
 
-def test_the_shipped_library_has_a_current_plan_for_every_rigid_object() -> None:
-    """grasps.json was planned on the committed asset files: a changed asset must be replanned
-    (``d3grasp-assets plan-grasps``), not silently left to the rule. Soft objects are not planned yet."""
+def test_the_shipped_library_has_a_current_plan_for_every_object() -> None:
+    """grasps.json was planned on the committed asset files, rigid and soft: a changed asset must be
+    replanned (``d3grasp-assets plan-grasps``), not silently left to the rule."""
     plan = load_grasp_plan(default_manifest())
     assert plan is not None
-    rigid = [e.id for e in read_manifest(default_manifest()) if e.kind == "rigid"]
-    assert sorted(set(rigid) - set(plan)) == []
+    ids = [e.id for e in read_manifest(default_manifest())]
+    assert sorted(set(ids) - set(plan)) == []

@@ -63,7 +63,11 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory, manifest: Path) -> Path
 def compare_run(tmp_path_factory: pytest.TempPathFactory, manifest: Path, checkpoint: Path) -> Path:
     out = tmp_path_factory.mktemp("compare")
     argv = ["--checkpoint", str(checkpoint), "--objects", str(manifest), "--compare", "baseline"]
-    assert main([*argv, "--grasp-types", "top", "--seed", "3", "--out", str(out), *QUICK]) == 0
+    # Two processes, one batch each (policy, baseline): test_same_seed_same_results checks that the
+    # baseline's batch gives in its worker process what it gives run alone in this one.
+    assert (
+        main([*argv, "--grasp-types", "top", "--seed", "3", "--out", str(out), "--workers", "2", *QUICK]) == 0
+    )
     return out
 
 
@@ -134,10 +138,11 @@ def _percent(k: int, n: int) -> str:
 def test_same_seed_same_results(tmp_path: Path, manifest: Path, compare_run: Path) -> None:
     argv = ["--checkpoint", "baseline", "--objects", str(manifest), "--grasp-types", "top", "--seed", "3"]
     for name in ("a", "b"):
-        assert main([*argv, "--out", str(tmp_path / name), *QUICK]) == 0
+        assert main([*argv, "--out", str(tmp_path / name), "--workers", "1", *QUICK]) == 0
     a, b = (tmp_path / "a" / "results.json").read_text(), (tmp_path / "b" / "results.json").read_text()
     assert a == b
-    # The baseline of the comparison run saw the same objects, seeds and grasp types: same episodes.
+    # The baseline of the comparison run saw the same objects, seeds and grasp types, in a worker
+    # process of its own: same episodes.
     assert json.loads(a)["runs"]["baseline"]["episodes"] == _read(compare_run)["runs"]["baseline"]["episodes"]
 
 
@@ -314,3 +319,18 @@ def test_loading_a_policy_prints_nothing(
     env.close()
     assert controller.actor is not None
     assert capsys.readouterr().out == ""
+
+
+def test_batches_hold_one_kind_costliest_first() -> None:
+    from d3grasp.eval.evaluate import RunSpec, plan_batches
+
+    policy, base = RunSpec("policy", DEFAULT_TASK, "p.pt"), RunSpec("baseline", DEFAULT_TASK, "baseline")
+    ids = ["r1", "s1", "r2", "r3", "s2", "s3", "r4"]
+    kinds = {i: "deformable" if i.startswith("s") else "rigid" for i in ids}
+    batches = plan_batches([(policy, "oracle"), (base, "oracle")], ids, kinds, num_envs=3, repeats=2)
+    # By hand: rigid r1 r2 r3 | r4, soft s1 s2 s3; two controllers x two repeats each; the three-soft
+    # batches (cost 18) before the three-rigid ones (3) before the single rigid (1).
+    chunks = [("s1", "s2", "s3"), ("r1", "r2", "r3"), ("r4",)]
+    want = [(spec, "oracle", c, r) for c in chunks for spec in (policy, base) for r in (0, 1)]
+    assert sorted(batches, key=str) == sorted(want, key=str)
+    assert [b[2] for b in batches] == [c for c in chunks for _ in range(4)]
