@@ -89,7 +89,7 @@ class Physics:
             self.contacts = self.pipeline.contacts()
             self.solver = newton.solvers.SolverVBD(
                 model,
-                iterations=sim.iterations,
+                iterations=sim.soft_iterations if (layout.particle_count > 0).any() else sim.iterations,
                 friction_epsilon=sim.friction_epsilon,
                 rigid_contact_history=True,
                 particle_enable_self_contact=False,

@@ -91,34 +91,54 @@ def test_reset_restores_soft_body_to_rest(mixed_env):
     assert abs(eps[sensors.world_soft_slot[soft_world]]) < 1e-4
 
 
-def _run_baseline_episode(env) -> list[dict]:
+def _run_baseline_episode(env, pushes: list | None = None) -> list[dict]:
     ctl = RuleBasedController(env)
     obs = env.get_observations()
     episodes = []
     for _ in range(env.max_episode_length):
         obs, _, _, extras = env.step(ctl.act(obs))
         episodes += extras.get("episodes", [])
+        if pushes is not None:
+            pushes.append(env.t_object_force.clone())
     return episodes
+
+
+def _push_magnitudes(env, pushes: list) -> torch.Tensor:
+    """|push| of world 0 over the disturbance phase (the step applying it is the one before)."""
+    d0, d1 = env.script.phase_start["disturb"], env.script.phase_start["release"]
+    return torch.stack(pushes)[d0 : d1 - 1, 0].norm(dim=-1)
+
+
+def test_an_env_with_a_soft_object_runs_the_soft_iterations(mixed_env):
+    assert mixed_env.physics.solver.iterations == mixed_env.cfg.sim.soft_iterations == 20
+    rigid = _box_env()
+    assert rigid.physics.solver.iterations == rigid.cfg.sim.iterations == 5
 
 
 def test_baseline_lifts_a_medium_box_and_holds_it_under_disturbance():
     env = _box_env()
-    (ep,) = _run_baseline_episode(env)
+    pushes: list = []
+    (ep,) = _run_baseline_episode(env, pushes)
     assert ep["object"] == RIGID_MEDIUM_BOX
     assert ep["s_lift"], ep
     assert ep["s_disturb"], ep
+    # Held: pushed with the paper's 2.5 N throughout the six pushes.
+    assert torch.allclose(_push_magnitudes(env, pushes), torch.tensor(2.5))
 
 
 def test_open_hand_never_counts_as_a_lift():
     # Absolute actions: the open pose is then the hand's target throughout (in residual mode the rule
     # inside the env would close it).
     env = _box_env(action_mode="absolute")
-    episodes = []
+    episodes, pushes = [], []
     for _ in range(env.max_episode_length):
         _, _, _, extras = env.step(env.open_action.expand(1, -1))
         episodes += extras.get("episodes", [])
+        pushes.append(env.t_object_force.clone())
     assert len(episodes) == 1
     assert not episodes[0]["s_lift"] and not episodes[0]["s_disturb"]
+    # Never lifted: nothing to test under a push, so no push (a free object pushed for 12 s flies off).
+    assert float(_push_magnitudes(env, pushes).max()) == 0.0
 
 
 def test_zero_residual_reproduces_the_rule_based_controller():
