@@ -36,7 +36,8 @@ class CandidateConfig:
     """How many candidates per grasp type and where they put the object in the hand."""
 
     per_type: int = 10  # the geometric placement and per_type - 1 drawn ones
-    # Soft objects: a step of a FEM body costs ~6x a rigid one's (246-1026 tets), and a squeeze
+    # Soft objects: a step of a FEM body costs ~20x a rigid one's (246-1026 tets, 20 solver
+    # iterations: d3grasp.eval.evaluate.SOFT_COST), and a squeeze
     # conforms to the hand, so fewer placements are drawn.
     per_type_soft: int = 4
     types: tuple[str, ...] = GRASP_TYPES

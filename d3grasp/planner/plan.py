@@ -162,7 +162,8 @@ def plan_grasps(
     if done:
         log(f"[plan-grasps] {len(done)} of {len(entries)} planned already ({path.name})")
     # Fixed groups of the whole selection in library order (rigid objects first: a FEM step costs
-    # ~6x a rigid one, and the two kinds never share a group), whatever is planned already and
+    # ~20x a rigid one, d3grasp.eval.evaluate.SOFT_COST, and the two kinds never share a group, so a
+    # group of rigid objects runs at 5 solver iterations), whatever is planned already and
     # however many workers run them: a group's objects share their batches, so the same groups give
     # the same plan for a seed on any number of cores and after any interruption. A group with an
     # object left to plan runs whole.

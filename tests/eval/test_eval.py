@@ -329,7 +329,7 @@ def test_batches_hold_one_kind_costliest_first() -> None:
     kinds = {i: "deformable" if i.startswith("s") else "rigid" for i in ids}
     batches = plan_batches([(policy, "oracle"), (base, "oracle")], ids, kinds, num_envs=3, repeats=2)
     # By hand: rigid r1 r2 r3 | r4, soft s1 s2 s3; two controllers x two repeats each; the three-soft
-    # batches (cost 18) before the three-rigid ones (3) before the single rigid (1).
+    # batches (cost 3 x SOFT_COST) before the three-rigid ones (3) before the single rigid (1).
     chunks = [("s1", "s2", "s3"), ("r1", "r2", "r3"), ("r4",)]
     want = [(spec, "oracle", c, r) for c in chunks for spec in (policy, base) for r in (0, 1)]
     assert sorted(batches, key=str) == sorted(want, key=str)
