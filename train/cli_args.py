@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import argparse
 import os
+from typing import Any
 
-from d3grasp.cli.args import add_env_override_arg, non_negative_int, positive_int
+from d3grasp.cli.args import add_env_override_arg, non_negative_int, parse_override, positive_int
 from d3grasp.envs.config import PERCEPTION_MODES
 from d3grasp.envs.registry import DEFAULT_TASK
 
@@ -19,6 +20,14 @@ def _size(value: str) -> tuple[int, int]:
     if not sep or not w.isdigit() or not h.isdigit() or int(w) < 8 or int(h) < 8:
         raise argparse.ArgumentTypeError(f"expected WxH in pixels (at least 8x8), got '{value}'")
     return int(w), int(h)
+
+
+def _rank_override(text: str) -> tuple[int, tuple[str, Any]]:
+    """``"1:objects.kinds=[\"deformable\"]"`` -> ``(1, ("objects__kinds", ("deformable",)))``."""
+    rank, sep, rest = text.partition(":")
+    if not sep or not rank.strip().isdigit():
+        raise argparse.ArgumentTypeError(f"--rank_set expects RANK:KEY=VALUE, got '{text}'")
+    return int(rank), parse_override(rest)
 
 
 def add_common_args(parser: argparse.ArgumentParser) -> None:
@@ -72,6 +81,25 @@ def make_train_parser() -> argparse.ArgumentParser:
         p,
         "override a training env config field, e.g. phases.disturb_per_direction=1.0 (recorded in "
         "params/env.json; evaluation uses the task's own config)",
+    )
+    p.add_argument(
+        "--rank_set",
+        dest="rank_overrides",
+        action="append",
+        type=_rank_override,
+        default=[],
+        metavar="RANK:KEY=VALUE",
+        help="an env override for one rank only (after --set), e.g. 1:objects.kinds='[\"deformable\"]': "
+        "rigid and soft worlds on separate ranks, so the rigid ones keep the cheaper solver settings",
+    )
+    p.add_argument(
+        "--rank_num_envs",
+        type=positive_int,
+        nargs="+",
+        default=None,
+        metavar="N",
+        help="worlds of each rank, one count per rank (instead of --num_envs), e.g. 48 8 to give the "
+        "rigid rank as many worlds as it steps in the soft rank's time",
     )
     p.add_argument(
         "--resume", action="store_true", help="continue from a checkpoint (weights, optimizer, count)"

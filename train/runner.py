@@ -252,6 +252,10 @@ class D3GraspRunner(OnPolicyRunner):
         if self.is_distributed:
             self.alg.broadcast_parameters()  # identical initial weights on every rank
         self.logger.init_logging_writer()
+        # Ranks may hold different numbers of worlds (--rank_num_envs): count the steps of all of them.
+        # rsl-rl's logger counts num_envs x world size; its per-world buffers are already allocated.
+        worlds_all_ranks = self._worlds_all_ranks()
+        self.logger.num_envs, self.logger.gpu_world_size = worlds_all_ranks, 1
 
         steps = int(self.cfg["num_steps_per_env"])
         start_it = self.current_learning_iteration
@@ -296,7 +300,7 @@ class D3GraspRunner(OnPolicyRunner):
                     sim_s=sim_s,
                     rollout_s=t_rollout - t_start,
                     update_s=t_end - t_rollout,
-                    env_steps=steps * env.num_envs * self.gpu_world_size,
+                    env_steps=steps * worlds_all_ranks,
                 )
                 self.timings.append(timing)
                 self._log_iteration(it, start_it, total_it, timing, loss_dict)
@@ -349,6 +353,13 @@ class D3GraspRunner(OnPolicyRunner):
             if isinstance(buf, torch.Tensor):
                 buf.zero_()
         return env
+
+    def _worlds_all_ranks(self) -> int:
+        if not self.is_distributed:
+            return int(self.env.num_envs)
+        count = torch.tensor([float(self.env.num_envs)], device=self.device)
+        torch.distributed.all_reduce(count, op=torch.distributed.ReduceOp.SUM)
+        return int(count.item())
 
     def _agree_to_stop(self, local: bool) -> bool:
         """All ranks stop together (a rank leaving early would hang the others' all-reduce)."""

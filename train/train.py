@@ -19,6 +19,7 @@ import datetime
 import importlib
 import importlib.util
 import json
+import math
 import os
 import re
 import sys
@@ -38,7 +39,15 @@ from d3grasp.envs import close_env  # noqa: E402
 from d3grasp.envs.registry import get_task  # noqa: E402
 from d3grasp.seeding import seed_everything
 
-__all__ = ["DistInfo", "load_env_factory", "main", "resolve_device", "resume_checkpoint", "run_training"]
+__all__ = [
+    "DistInfo",
+    "load_env_factory",
+    "main",
+    "rank_env_settings",
+    "resolve_device",
+    "resume_checkpoint",
+    "run_training",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,6 +145,33 @@ def _dump_params(log_dir: Path, env_cfg: Any, train_cfg: dict[str, Any], argv: S
     (params / "command.txt").write_text(" ".join(argv) + "\n", encoding="utf-8")
 
 
+def rank_env_settings(
+    args: argparse.Namespace, dist: DistInfo
+) -> tuple[int | None, int | None, dict[str, Any]]:
+    """``(worlds of this rank, worlds every rank divides by, env overrides of this rank)`` from
+    ``--num_envs``/``--rank_num_envs`` and ``--set``/``--rank_set``.
+
+    The common divisor sizes PPO's mini-batches: every rank must run the same number of them, since
+    each mini-batch ends in a gradient all-reduce that all ranks join.
+    """
+    per_rank = getattr(args, "rank_num_envs", None)
+    rank_overrides = list(getattr(args, "rank_overrides", None) or ())
+    bad = sorted({r for r, _ in rank_overrides if r >= dist.world_size})
+    if bad:
+        raise ValueError(f"--rank_set names rank(s) {bad}, but this run has {dist.world_size} rank(s)")
+    overrides = dict(getattr(args, "overrides", None) or ())
+    overrides.update(kv for r, kv in rank_overrides if r == dist.rank)
+    if per_rank is None:
+        return args.num_envs, args.num_envs, overrides
+    if args.num_envs is not None:
+        raise ValueError("give either --num_envs or --rank_num_envs, not both")
+    if len(per_rank) != dist.world_size:
+        raise ValueError(
+            f"--rank_num_envs gives {len(per_rank)} count(s) for {dist.world_size} rank(s): give one per rank"
+        )
+    return per_rank[dist.rank], math.gcd(*per_rank), overrides
+
+
 def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspRunner:
     """Train as ``args`` (``make_train_parser()``'s flags) say; returns the runner (its ``log_dir``
     is the run folder on rank 0 and None on other ranks; its environment is closed)."""
@@ -171,20 +207,18 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
     seed = int(args.seed) + dist.rank
     seed_everything(seed)
     make = load_env_factory(args.env_factory)
-    env_overrides = dict(getattr(args, "overrides", None) or ())
+    num_envs, common_envs, env_overrides = rank_env_settings(args, dist)
 
     def build_env(draw: int) -> Any:
         # Draw k (= completed iterations // resample_objects_every) of the objects: the same worlds
         # seeded apart, so each draw picks other objects; the first segment uses the base seed.
-        return make(
-            args.task, num_envs=args.num_envs, device=device, seed=seed + 1000 * draw, **env_overrides
-        )
+        return make(args.task, num_envs=num_envs, device=device, seed=seed + 1000 * draw, **env_overrides)
 
     env = build_env(0)
     runner: D3GraspRunner | None = None
     try:
         alg = train_cfg["algorithm"]
-        alg["num_mini_batches"] = fit_mini_batches(alg["num_mini_batches"], env.num_envs)
+        alg["num_mini_batches"] = fit_mini_batches(alg["num_mini_batches"], common_envs or env.num_envs)
 
         log_dir: Path | None = None
         if dist.rank == 0:

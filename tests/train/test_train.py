@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 import torch
 from d3grasp.train import train as train_mod
+from d3grasp.train.cli_args import make_train_parser
 from d3grasp.train.configs import fit_mini_batches, make_train_cfg
 from d3grasp.train.play import main as play_main
 from d3grasp.train.play import play
@@ -274,6 +275,31 @@ def test_train_cfg_per_task() -> None:
 )
 def test_fit_mini_batches(req: int, n: int, want: int) -> None:
     assert fit_mini_batches(req, n) == want
+
+
+def test_per_rank_worlds_and_overrides() -> None:
+    parser = make_train_parser()
+    args = parser.parse_args(
+        ["--rank_num_envs", "48", "8", "--set", "objects.soft_fraction=0.5",
+         "--rank_set", '1:objects.kinds=["deformable"]', "--rank_set", "1:sim.soft_iterations=10"]
+    )  # fmt: skip
+    n0, common, ov0 = train_mod.rank_env_settings(args, train_mod.DistInfo(rank=0, world_size=2))
+    n1, _, ov1 = train_mod.rank_env_settings(args, train_mod.DistInfo(rank=1, world_size=2))
+    assert (n0, n1, common) == (48, 8, 8)  # 4 mini-batches of 12 and of 2 worlds: equal counts
+    assert ov0 == {"objects__soft_fraction": 0.5}
+    want1 = {"objects__soft_fraction": 0.5, "objects__kinds": ("deformable",), "sim__soft_iterations": 10}
+    assert ov1 == want1
+    # One count per rank, a rank that exists, and not both world flags.
+    with pytest.raises(ValueError, match="one per rank"):
+        train_mod.rank_env_settings(args, train_mod.DistInfo(rank=0, world_size=3))
+    bad_rank = parser.parse_args(["--rank_set", "2:sim.iterations=5"])
+    with pytest.raises(ValueError, match=r"rank\(s\) \[2\]"):
+        train_mod.rank_env_settings(bad_rank, train_mod.DistInfo(rank=0, world_size=2))
+    both = parser.parse_args(["--num_envs", "4", "--rank_num_envs", "4", "4"])
+    with pytest.raises(ValueError, match="not both"):
+        train_mod.rank_env_settings(both, train_mod.DistInfo(rank=0, world_size=2))
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--rank_set", "objects.kinds=rigid"])  # no rank
 
 
 def test_episode_stats_rates() -> None:
