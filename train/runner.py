@@ -256,6 +256,8 @@ class D3GraspRunner(OnPolicyRunner):
         # rsl-rl's logger counts num_envs x world size; its per-world buffers are already allocated.
         worlds_all_ranks = self._worlds_all_ranks()
         self.logger.num_envs, self.logger.gpu_world_size = worlds_all_ranks, 1
+        if self.is_distributed:
+            self._pool_rank_gradients(env.num_envs * self.gpu_world_size / worlds_all_ranks)
 
         steps = int(self.cfg["num_steps_per_env"])
         start_it = self.current_learning_iteration
@@ -353,6 +355,30 @@ class D3GraspRunner(OnPolicyRunner):
             if isinstance(buf, torch.Tensor):
                 buf.zero_()
         return env
+
+    def _pool_rank_gradients(self, weight: float) -> None:
+        """Weigh this rank's gradients by its share of the worlds before rsl-rl averages them, so
+        the update is the one of all ranks' samples pooled in one batch.
+
+        rsl-rl averages the ranks' mini-batch gradients with equal weights, and each rank normalises
+        its advantages over its own batch: a rank of 4 soft worlds beside one of 96 rigid worlds then
+        steered half of every update with 1/25 of the samples. In that run the training success
+        rates fell from the rule's (s_lift 0.85 in the first episodes) to ~0.2 within 50 iterations.
+        With equal worlds on every rank the weight is 1 and nothing changes.
+        """
+        if weight == 1.0:
+            return
+        reduce = self.alg.reduce_parameters
+        modules = [self.alg.actor, self.alg.critic] + ([self.alg.rnd] if self.alg.rnd else [])
+
+        def weighted_reduce() -> None:
+            for module in modules:
+                for param in module.parameters():
+                    if param.grad is not None:
+                        param.grad.mul_(weight)
+            reduce()
+
+        self.alg.reduce_parameters = weighted_reduce  # type: ignore[method-assign]
 
     def _worlds_all_ranks(self) -> int:
         if not self.is_distributed:

@@ -13,6 +13,7 @@ arithmetic for optimizer steps, hand-counted outcome tables.
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import re
 import signal
@@ -638,6 +639,9 @@ def test_torchrun_two_cpu_ranks_hold_identical_weights(tmp_path: Path) -> None:
         sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
         str(script), str(tmp_path), *_train_argv(tmp_path),
     ]  # fmt: skip
+    # Unequal worlds per rank (3 and 1): the gradients are weighed by each rank's share of the worlds.
+    i = cmd.index("--num_envs")
+    cmd[i : i + 2] = ["--rank_num_envs", "3", "1"]
     res = subprocess.run(cmd, env=_subprocess_env(), capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     r0 = torch.load(tmp_path / "rank0.pt")
@@ -646,11 +650,13 @@ def test_torchrun_two_cpu_ranks_hold_identical_weights(tmp_path: Path) -> None:
     for part in ("actor", "critic"):
         for key, value in r0[part].items():
             assert torch.equal(value, r1[part][key]), f"{part}.{key} differs between ranks"
-    # Normaliser statistics were pooled over both ranks' samples: 2 ranks x 2 worlds x 4 steps x 2 iterations.
-    assert int(r0["actor"]["obs_normalizer.count"]) == 2 * 2 * 4 * 2
+    # Normaliser statistics were pooled over both ranks' samples: (3 + 1) worlds x 4 steps x 2 iterations.
+    assert int(r0["actor"]["obs_normalizer.count"]) == (3 + 1) * 4 * 2
     (run,) = _run_dirs(tmp_path)  # only rank 0 writes a run folder
     data = read_checkpoint(run / "model_2.pt")
     assert torch.equal(data["actor_state_dict"]["mlp.0.weight"], r0["actor"]["mlp.0.weight"])
+    timings = json.loads((run / "timings.json").read_text())
+    assert [t["env_steps"] for t in timings] == [(3 + 1) * 4] * 2  # every rank's worlds counted
 
 
 # --------------------------------------------------------------------------- the shipped policy
