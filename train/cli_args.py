@@ -30,6 +30,12 @@ def _rank_override(text: str) -> tuple[int, tuple[str, Any]]:
     return int(rank), parse_override(rest)
 
 
+def _agent_override(text: str) -> tuple[str, Any]:
+    """``"algorithm.learning_rate=1e-4"`` -> ``("algorithm.learning_rate", 0.0001)``."""
+    key, value = parse_override(text)
+    return key.replace("__", "."), value
+
+
 def add_common_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", default=DEFAULT_TASK, help=f"registered task name (default {DEFAULT_TASK})")
     parser.add_argument(
@@ -81,6 +87,16 @@ def make_train_parser() -> argparse.ArgumentParser:
         p,
         "override a training env config field, e.g. phases.disturb_per_direction=1.0 (recorded in "
         "params/env.json; evaluation uses the task's own config)",
+    )
+    p.add_argument(
+        "--agent",
+        dest="agent_overrides",
+        action="append",
+        type=_agent_override,
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a runner/PPO config value, e.g. algorithm.learning_rate=1e-4 or "
+        "actor.distribution_cfg.init_std=0.15 (recorded in params/agent.json)",
     )
     p.add_argument(
         "--rank_set",

@@ -264,6 +264,7 @@ class D3GraspRunner(OnPolicyRunner):
         total_it = start_it + num_learning_iterations
         nan_check = self.cfg.get("check_for_nan", True)
         resample_every = int(self.cfg.get("resample_objects_every") or 0)
+        critic_warmup = int(self.cfg.get("critic_warmup_iterations") or 0)
         saved_at = -1
         with self.stop_flag.installed() as stop:
             for it in range(start_it, total_it):
@@ -293,7 +294,8 @@ class D3GraspRunner(OnPolicyRunner):
                         break
                     t_rollout = time.perf_counter()
                     self.alg.compute_returns(obs)
-                loss_dict = self.alg.update()
+                with self._actor_frozen(it < critic_warmup):
+                    loss_dict = self.alg.update()
                 t_end = time.perf_counter()
                 self.current_learning_iteration = it + 1
 
@@ -355,6 +357,22 @@ class D3GraspRunner(OnPolicyRunner):
             if isinstance(buf, torch.Tensor):
                 buf.zero_()
         return env
+
+    @contextlib.contextmanager
+    def _actor_frozen(self, frozen: bool) -> Iterator[None]:
+        """During the critic's warm-up only the critic learns: the actor's parameters (its action std
+        included) get no gradient, so Adam leaves them as they are."""
+        if not frozen:
+            yield
+            return
+        params = [p for p in self.alg.actor.parameters() if p.requires_grad]
+        for param in params:
+            param.requires_grad_(False)
+        try:
+            yield
+        finally:
+            for param in params:
+                param.requires_grad_(True)
 
     def _pool_rank_gradients(self, weight: float) -> None:
         """Weigh this rank's gradients by its share of the worlds before rsl-rl averages them, so

@@ -31,7 +31,7 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 import torch  # noqa: E402
 from d3grasp.train.cli_args import make_train_parser  # noqa: E402
-from d3grasp.train.configs import fit_mini_batches, make_train_cfg  # noqa: E402
+from d3grasp.train.configs import fit_mini_batches, make_train_cfg, set_cfg_value  # noqa: E402
 from d3grasp.train.runner import CheckpointError, D3GraspRunner, latest_checkpoint  # noqa: E402
 
 from d3grasp.cli.args import resolve_torch_threads, run_command  # noqa: E402
@@ -200,6 +200,8 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
         )
         overrides["logger"] = {"class_name": "WandbLogWriter", "project_name": project}
     train_cfg = make_train_cfg(args.task, **overrides)
+    for dotted, value in getattr(args, "agent_overrides", None) or ():
+        set_cfg_value(train_cfg, dotted, value)
 
     experiment_dir = Path(args.log_root) / train_cfg["experiment_name"]
     resume_path = resume_checkpoint(experiment_dir, args.load_run, args.checkpoint) if args.resume else None

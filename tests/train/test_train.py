@@ -28,7 +28,7 @@ import pytest
 import torch
 from d3grasp.train import train as train_mod
 from d3grasp.train.cli_args import make_train_parser
-from d3grasp.train.configs import fit_mini_batches, make_train_cfg
+from d3grasp.train.configs import fit_mini_batches, make_train_cfg, set_cfg_value
 from d3grasp.train.play import main as play_main
 from d3grasp.train.play import play
 from d3grasp.train.runner import (
@@ -451,6 +451,41 @@ def test_train_resume_play_export(tmp_path: Path, capsys: pytest.CaptureFixture[
     # The state matters: the last step with a zero state gives a different action.
     fresh, _, _ = ref.step(seq[-1].astype(np.float64), *ref.zero_state(1))
     assert np.abs(fresh - want).max() > 1e-3
+
+
+def test_critic_warmup_leaves_the_actor_unchanged() -> None:
+    """In the warm-up iterations only the critic learns; after them the actor does too."""
+    env = StandInEnv(DEFAULT_TASK, num_envs=4, seed=2)
+    cfg = make_train_cfg(DEFAULT_TASK, num_steps_per_env=4, critic_warmup_iterations=2)
+    runner = D3GraspRunner(env, cfg, log_dir=None, task_name=DEFAULT_TASK)
+
+    def snapshot(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+        return {k: v.clone() for k, v in module.state_dict().items() if "normalizer" not in k}
+
+    actor0, critic0 = snapshot(runner.alg.actor), snapshot(runner.alg.critic)
+    runner.learn(2)
+    actor2, critic2 = snapshot(runner.alg.actor), snapshot(runner.alg.critic)
+    assert all(torch.equal(actor0[k], actor2[k]) for k in actor0)
+    assert any(not torch.equal(critic0[k], critic2[k]) for k in critic0)
+    assert all(p.requires_grad for p in runner.alg.actor.parameters())  # unfrozen again
+    runner.learn(1)  # iteration 2: past the warm-up
+    actor3 = snapshot(runner.alg.actor)
+    assert any(not torch.equal(actor2[k], actor3[k]) for k in actor2)
+
+
+def test_agent_overrides_set_nested_runner_values() -> None:
+    args = make_train_parser().parse_args(
+        ["--agent", "algorithm.learning_rate=1e-4", "--agent", "actor.distribution_cfg.init_std=0.15"]
+    )
+    cfg = make_train_cfg(DEFAULT_TASK)
+    for key, value in args.agent_overrides:
+        set_cfg_value(cfg, key, value)
+    assert cfg["algorithm"]["learning_rate"] == pytest.approx(1e-4)
+    assert cfg["actor"]["distribution_cfg"]["init_std"] == pytest.approx(0.15)
+    with pytest.raises(ValueError, match="unknown key 'lr'"):
+        set_cfg_value(cfg, "algorithm.lr", 1e-3)
+    with pytest.raises(ValueError, match="no 'policy'"):
+        set_cfg_value(cfg, "policy.init_std", 1.0)
 
 
 def test_hidden_state_reset_for_finished_episodes(tmp_path: Path) -> None:
