@@ -193,6 +193,12 @@ class GraspEnvConfig:
     # so "squeeze harder through the lift" is barely ever tried. Integrated, the same noise is a random
     # walk (std rate * 0.3 * sqrt(n) after n steps): smooth, sustained offsets are what gets explored.
     residual_rate: float = 0.08  # 0: the low-pass above; 0.08 reaches a full squeeze in 13 steps
+    # Phase from which the residual acts (held at 0 and the actions ignored before it). The approach is
+    # scripted and the fingers' pre-shape is the planner's, but an integrating residual active from t = 0
+    # turns a small learned bias into a full offset before the first contact: 80 PPO iterations
+    # (50 of them updating the actor) gave the thumb a mean action of +0.26 in the approach, and 7 of 16
+    # training worlds then ended without a grasp (measured; the rule alone: 2 of 16).
+    residual_start: str = "approach"  # a phase of d3grasp.vocabulary.PHASES; "approach": from t = 0
     action_smoothing: float = 0.5  # target = a * new + (1 - a) * previous target
     privileged_obs: bool = True  # asymmetric critic input group
     tactile_obs: bool = True  # False for the proprioception-only ablation
@@ -235,12 +241,17 @@ POLICY_INTERFACE: tuple[str, ...] = (
     "residual_scale",
     "residual_smoothing",
     "residual_rate",
+    "residual_start",
     "action_smoothing",
 )
 """The settings that turn a policy's actions into joint targets. A checkpoint only means what it
 learned under the values it was trained with, and most of them leave every size unchanged (a
 residual_rate of 0.08 against 0 reads and writes the same tensors), so checkpoints record them and
 loading one into an environment with other values is refused rather than silently run."""
+
+
+# What a checkpoint recorded before a POLICY_INTERFACE setting existed: the behaviour it was trained with.
+POLICY_INTERFACE_BEFORE: dict[str, object] = {"residual_start": "approach"}
 
 
 def policy_interface(cfg: GraspEnvConfig) -> dict[str, object]:

@@ -374,6 +374,8 @@ def _check_config(cfg: GraspEnvConfig, num_envs: int) -> None:
         raise ValueError(f"residual_smoothing must be in (0, 1], got {cfg.residual_smoothing}")
     if not 0.0 <= cfg.residual_rate <= 1.0:
         raise ValueError(f"residual_rate must be in [0, 1], got {cfg.residual_rate}")
+    if cfg.residual_start not in PHASES:
+        raise ValueError(f"unknown residual_start '{cfg.residual_start}'; phases: {list(PHASES)}")
     if cfg.grasp_source not in GRASP_SOURCES:
         raise ValueError(f"unknown grasp_source '{cfg.grasp_source}'; known: {list(GRASP_SOURCES)}")
     if cfg.perception not in PERCEPTION_MODES:

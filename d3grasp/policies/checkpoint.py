@@ -120,6 +120,10 @@ def _check_policy_interface(theirs: dict[str, Any] | None, mine: dict[str, Any] 
     """Refuse a checkpoint trained with other action-to-target settings (same sizes, other meaning)."""
     if not theirs or mine is None:
         return  # checkpoints from before the record, or an env without a GraspEnvConfig
+    from d3grasp.envs.config import POLICY_INTERFACE_BEFORE
+
+    # A setting the checkpoint does not record did not exist yet: it was trained with the old behaviour.
+    theirs = {**{k: v for k, v in POLICY_INTERFACE_BEFORE.items() if k in mine}, **theirs}
     diff = {k: (v, mine[k]) for k, v in theirs.items() if k in mine and mine[k] != v}
     if diff:
         given = ", ".join(f"{k}={a!r} (environment: {b!r})" for k, (a, b) in diff.items())

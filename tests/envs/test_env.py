@@ -224,6 +224,28 @@ def test_residual_integrator_holds_and_saturates():
         _env((RIGID_MEDIUM_BOX,), residual_rate=-0.1)
 
 
+def test_residual_waits_for_its_start_phase():
+    """residual_start="grasp": through the scripted approach the residual stays 0 whatever the actions;
+    from the first grasp step on it integrates them from 0."""
+    rate = 0.1
+    env = _box_env(action_mode="synergy", residual_rate=rate, residual_start="grasp")
+    grasp = PHASES.index("grasp")
+    action = torch.tensor([[1.0, -0.5, 0.2, 0.0]])
+    steps_in_grasp = 0
+    while steps_in_grasp < 4:
+        in_grasp = int(env.phase_of(env.episode_length_buf)[0]) >= grasp  # the phase this step acts in
+        env.step(action)
+        flexion = env.residual[0].reshape(4, 4)[:, 1:]
+        if not in_grasp:
+            assert torch.all(flexion == 0.0)
+            continue
+        steps_in_grasp += 1
+        want = torch.clamp(rate * steps_in_grasp * action[0], -1.0, 1.0)
+        torch.testing.assert_close(flexion, want[:, None].expand(4, 3), atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="residual_start"):
+        _env((RIGID_MEDIUM_BOX,), residual_start="squeeze")
+
+
 def test_disturbance_force_pushes_a_free_object():
     # The hand waits in its pre-grasp pose; push the free box along +x with 2.5 N for 0.5 s.
     env = _box_env(sim__use_graph=False)

@@ -600,12 +600,22 @@ def test_checkpoint_records_and_checks_how_actions_become_targets(tmp_path: Path
         "residual_scale": 0.4,
         "residual_smoothing": 0.2,
         "residual_rate": 0.05,
+        "residual_start": "approach",
         "action_smoothing": 0.7,
     }
     runner.load(str(ckpt), load_cfg={"actor": True})  # same settings: loads
     env.cfg.residual_rate = 0.08
     refused = r"residual_rate=0\.05 \(environment: 0\.08\).*--set residual_rate=0\.05"
     with pytest.raises(CheckpointError, match=refused):
+        runner.load(str(ckpt), load_cfg={"actor": True})
+    # A checkpoint from before residual_start was recorded acted from t = 0 ("approach").
+    env.cfg.residual_rate = 0.05
+    data = read_checkpoint(ckpt)
+    del data["infos"]["policy_interface"]["residual_start"]
+    torch.save(data, ckpt)
+    runner.load(str(ckpt), load_cfg={"actor": True})
+    env.cfg.residual_start = "grasp"
+    with pytest.raises(CheckpointError, match=r"--set residual_start=approach"):
         runner.load(str(ckpt), load_cfg={"actor": True})
 
 

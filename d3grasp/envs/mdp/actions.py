@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from d3grasp.dexhand13 import NUM_FINGER_JOINTS, NUM_FINGERS, finger_joints
+from d3grasp.vocabulary import PHASES
 
 if TYPE_CHECKING:
     from d3grasp.envs.grasp_env import GraspEnv
@@ -47,6 +48,9 @@ def apply_actions(env: GraspEnv, actions: torch.Tensor) -> None:
         else:
             b = cfg.residual_smoothing
             env.residual = b * applied + (1.0 - b) * env.residual
+        # Before cfg.residual_start (e.g. the scripted approach) the rule alone drives the fingers.
+        waiting = env.phase_of(env.episode_length_buf) < PHASES.index(cfg.residual_start)
+        env.residual = env.residual * (~waiting)[:, None]
         desired = env.residual_base.target + cfg.residual_scale * env.residual
         desired = torch.minimum(torch.maximum(desired, env.lower), env.upper)
     else:
