@@ -1,0 +1,143 @@
+"""Paired comparison of two controllers from ``d3grasp-eval --compare baseline`` results.
+
+    python -m d3grasp.eval.paired eval_seed0/results.json eval_seed1/results.json
+
+Both controllers met the same objects with the same seeds, so each episode of one has a twin of the
+other (same object, seed and repeat). Success rates from a few dozen objects move by several points
+with the seed alone; the paired view counts the objects only one controller succeeded on and tests
+them with the exact sign (McNemar) test, which a difference of two independent rates cannot do.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from d3grasp.vocabulary import METRICS
+
+__all__ = ["PairedResult", "compare_pairs", "load_pairs", "main", "sign_test_p"]
+
+Z95 = 1.959963984540054
+
+
+@dataclass(frozen=True)
+class PairedResult:
+    kind: str
+    metric: str
+    n: int  # episode pairs
+    rate_a: float
+    rate_b: float
+    only_a: int  # pairs where only controller a succeeded
+    only_b: int
+    p_value: float  # exact two-sided sign test on the discordant pairs
+    diff_ci: tuple[float, float]  # 95% interval of rate_a - rate_b (normal approximation, paired)
+
+
+def sign_test_p(only_a: int, only_b: int) -> float:
+    """Exact two-sided p-value of ``only_a`` against ``only_b`` discordant pairs under p = 1/2."""
+    m = only_a + only_b
+    if m == 0:
+        return 1.0
+    tail = sum(math.comb(m, i) for i in range(min(only_a, only_b) + 1)) / 2.0**m
+    return min(1.0, 2.0 * tail)
+
+
+def load_pairs(
+    paths: Sequence[Path], run_a: str = "policy", run_b: str = "baseline"
+) -> list[tuple[dict[str, Any], dict[str, Any]]]:
+    """``(episode of a, its twin of b)`` over the result files (ValueError on a file without the runs)."""
+    pairs = []
+    for path in paths:
+        try:
+            runs = json.loads(Path(path).read_text(encoding="utf-8"))["runs"]
+        except (OSError, json.JSONDecodeError, KeyError) as exc:
+            raise ValueError(f"{path}: not a d3grasp-eval results.json ({exc})") from None
+        missing = [r for r in (run_a, run_b) if r not in runs]
+        if missing:
+            raise ValueError(
+                f"{path}: no run {missing} (has {sorted(runs)}); evaluate with --compare baseline"
+            )
+
+        def key(ep: dict[str, Any]) -> tuple[str, int, int]:
+            return ep["object"], int(ep["seed"]), int(ep.get("repeat", 0))
+
+        twins = {key(ep): ep for ep in runs[run_b]["episodes"]}
+        pairs += [(ep, twins[key(ep)]) for ep in runs[run_a]["episodes"] if key(ep) in twins]
+    return pairs
+
+
+def compare_pairs(pairs: Sequence[tuple[dict[str, Any], dict[str, Any]]]) -> list[PairedResult]:
+    """One result per object kind present and metric."""
+    results = []
+    for kind in ("rigid", "deformable"):
+        mine = [(a, b) for a, b in pairs if a["kind"] == kind]
+        if not mine:
+            continue
+        n = len(mine)
+        for metric in METRICS:
+            d = [int(bool(a[metric])) - int(bool(b[metric])) for a, b in mine]
+            only_a, only_b = d.count(1), d.count(-1)
+            mean = sum(d) / n
+            var = sum((x - mean) ** 2 for x in d) / (n - 1) if n > 1 else 0.0
+            half = Z95 * math.sqrt(var / n)
+            results.append(
+                PairedResult(
+                    kind=kind,
+                    metric=metric,
+                    n=n,
+                    rate_a=sum(bool(a[metric]) for a, _ in mine) / n,
+                    rate_b=sum(bool(b[metric]) for _, b in mine) / n,
+                    only_a=only_a,
+                    only_b=only_b,
+                    p_value=sign_test_p(only_a, only_b),
+                    diff_ci=(max(-1.0, mean - half), min(1.0, mean + half)),
+                )
+            )
+    return results
+
+
+def format_table(results: Sequence[PairedResult], run_a: str, run_b: str) -> str:
+    rows = [
+        f"| objects, metric | pairs | {run_a} % | {run_b} % | difference (95% CI) | only {run_a} | "
+        f"only {run_b} | sign test p |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        kind = "Diverse" if r.kind == "rigid" else "Deformable"
+        lo, hi = r.diff_ci
+        rows.append(
+            f"| {kind} {r.metric} | {r.n} | {100 * r.rate_a:.1f} | {100 * r.rate_b:.1f} | "
+            f"{100 * (r.rate_a - r.rate_b):+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}] | {r.only_a} | "
+            f"{r.only_b} | {r.p_value:.3g} |"
+        )
+    return "\n".join(rows)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m d3grasp.eval.paired",
+        description="Paired comparison of two controllers over d3grasp-eval results (one file per seed).",
+    )
+    p.add_argument(
+        "results", nargs="+", type=Path, help="results.json files of d3grasp-eval --compare baseline"
+    )
+    p.add_argument("--a", default="policy", help="first run (default policy)")
+    p.add_argument("--b", default="baseline", help="second run (default baseline)")
+    args = p.parse_args(argv)
+    try:
+        pairs = load_pairs(args.results, args.a, args.b)
+    except ValueError as exc:
+        print(f"d3grasp.eval.paired: error: {exc}", file=sys.stderr)
+        return 2
+    print(format_table(compare_pairs(pairs), args.a, args.b))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
