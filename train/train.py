@@ -36,6 +36,7 @@ from d3grasp.train.runner import CheckpointError, D3GraspRunner, latest_checkpoi
 
 from d3grasp.cli.args import resolve_torch_threads, run_command  # noqa: E402
 from d3grasp.envs import close_env  # noqa: E402
+from d3grasp.envs.config import POLICY_INTERFACE  # noqa: E402
 from d3grasp.envs.registry import get_task  # noqa: E402
 from d3grasp.seeding import seed_everything
 
@@ -159,6 +160,10 @@ def rank_env_settings(
     bad = sorted({r for r, _ in rank_overrides if r >= dist.world_size})
     if bad:
         raise ValueError(f"--rank_set names rank(s) {bad}, but this run has {dist.world_size} rank(s)")
+    # All ranks train one policy: what its actions mean (the checkpoint's contract) must be the same.
+    meaning = sorted({key for _, (key, _) in rank_overrides if key in POLICY_INTERFACE})
+    if meaning:
+        raise ValueError(f"--rank_set cannot change {meaning} (what actions mean) per rank: use --set")
     overrides = dict(getattr(args, "overrides", None) or ())
     overrides.update(kv for r, kv in rank_overrides if r == dist.rank)
     if per_rank is None:

@@ -296,6 +296,9 @@ def test_per_rank_worlds_and_overrides() -> None:
     bad_rank = parser.parse_args(["--rank_set", "2:sim.iterations=5"])
     with pytest.raises(ValueError, match=r"rank\(s\) \[2\]"):
         train_mod.rank_env_settings(bad_rank, train_mod.DistInfo(rank=0, world_size=2))
+    meaning = parser.parse_args(["--rank_set", "1:residual_rate=0.03"])
+    with pytest.raises(ValueError, match=r"cannot change \['residual_rate'\]"):
+        train_mod.rank_env_settings(meaning, train_mod.DistInfo(rank=0, world_size=2))
     both = parser.parse_args(["--num_envs", "4", "--rank_num_envs", "4", "4"])
     with pytest.raises(ValueError, match="not both"):
         train_mod.rank_env_settings(both, train_mod.DistInfo(rank=0, world_size=2))
