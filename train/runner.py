@@ -199,6 +199,13 @@ class D3GraspRunner(OnPolicyRunner):
         scale = train_cfg.get("actor_output_init_scale")
         if scale is not None:
             scale_actor_output(self.alg.actor, float(scale), int(env.num_actions))
+        # Ranks may hold different numbers of worlds (--rank_num_envs): count the steps of all of them.
+        # rsl-rl's logger counts num_envs x world size; its per-world buffers are already allocated.
+        # Once here, not per learn(): a second learn() would weigh the gradients twice.
+        self.worlds_all_ranks = self._worlds_all_ranks()
+        self.logger.num_envs, self.logger.gpu_world_size = self.worlds_all_ranks, 1
+        if self.is_distributed:
+            self._pool_rank_gradients(env.num_envs * self.gpu_world_size / self.worlds_all_ranks)
 
     # ----------------------------------------------------------------- distributed
     def _configure_multi_gpu(self) -> None:
@@ -252,12 +259,6 @@ class D3GraspRunner(OnPolicyRunner):
         if self.is_distributed:
             self.alg.broadcast_parameters()  # identical initial weights on every rank
         self.logger.init_logging_writer()
-        # Ranks may hold different numbers of worlds (--rank_num_envs): count the steps of all of them.
-        # rsl-rl's logger counts num_envs x world size; its per-world buffers are already allocated.
-        worlds_all_ranks = self._worlds_all_ranks()
-        self.logger.num_envs, self.logger.gpu_world_size = worlds_all_ranks, 1
-        if self.is_distributed:
-            self._pool_rank_gradients(env.num_envs * self.gpu_world_size / worlds_all_ranks)
 
         steps = int(self.cfg["num_steps_per_env"])
         start_it = self.current_learning_iteration
@@ -304,7 +305,7 @@ class D3GraspRunner(OnPolicyRunner):
                     sim_s=sim_s,
                     rollout_s=t_rollout - t_start,
                     update_s=t_end - t_rollout,
-                    env_steps=steps * worlds_all_ranks,
+                    env_steps=steps * self.worlds_all_ranks,
                 )
                 self.timings.append(timing)
                 self._log_iteration(it, start_it, total_it, timing, loss_dict)

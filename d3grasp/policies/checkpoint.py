@@ -123,7 +123,7 @@ def _check_policy_interface(theirs: dict[str, Any] | None, mine: dict[str, Any] 
     from d3grasp.envs.config import POLICY_INTERFACE_BEFORE
 
     # A setting the checkpoint does not record did not exist yet: it was trained with the old behaviour.
-    theirs = {**{k: v for k, v in POLICY_INTERFACE_BEFORE.items() if k in mine}, **theirs}
+    theirs = {**POLICY_INTERFACE_BEFORE, **theirs}
     diff = {k: (v, mine[k]) for k, v in theirs.items() if k in mine and mine[k] != v}
     if diff:
         given = ", ".join(f"{k}={a!r} (environment: {b!r})" for k, (a, b) in diff.items())

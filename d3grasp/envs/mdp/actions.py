@@ -49,8 +49,10 @@ def apply_actions(env: GraspEnv, actions: torch.Tensor) -> None:
             b = cfg.residual_smoothing
             env.residual = b * applied + (1.0 - b) * env.residual
         # Before cfg.residual_start (e.g. the scripted approach) the rule alone drives the fingers.
-        waiting = env.phase_of(env.episode_length_buf) < PHASES.index(cfg.residual_start)
-        env.residual = env.residual * (~waiting)[:, None]
+        start = PHASES.index(cfg.residual_start)
+        if start > 0:  # from the first phase on there is nothing to wait for
+            waiting = env.phase_of(env.episode_length_buf) < start
+            env.residual = env.residual * (~waiting)[:, None]
         desired = env.residual_base.target + cfg.residual_scale * env.residual
         desired = torch.minimum(torch.maximum(desired, env.lower), env.upper)
     else:
