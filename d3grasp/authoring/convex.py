@@ -91,6 +91,20 @@ def is_nearly_convex(mesh: trimesh.Trimesh, ratio: float = CONVEX_VOLUME_RATIO) 
     return float(mesh.volume) >= ratio * float(mesh.convex_hull.volume)
 
 
+def convex_bodies(mesh: trimesh.Trimesh, max_bodies: int = MAX_HULLS) -> list[trimesh.Trimesh] | None:
+    """The separate closed bodies of ``mesh`` when it is made of 2 to ``max_bodies`` of them and every
+    one is nearly convex (a shape modelled as overlapping primitives), in a fixed order; else None.
+
+    Their hulls are the exact decomposition, where coacd would search the union of intersecting
+    shells for one: measured on such meshes (pybullet's random_urdfs, 4-10 overlapping boxes and
+    cylinders), coacd ran over 15 minutes on a single 6-body mesh.
+    """
+    bodies = mesh.split(only_watertight=False)
+    if not (2 <= len(bodies) <= max_bodies) or not all(is_nearly_convex(b) for b in bodies):
+        return None
+    return sorted(bodies, key=lambda b: tuple(np.round(np.asarray(b.vertices).mean(axis=0), 6)))
+
+
 def convex_decompose(
     mesh: trimesh.Trimesh,
     *,
@@ -100,7 +114,8 @@ def convex_decompose(
     seed: int = 0,
     force_coacd: bool = False,
 ) -> list[Hull]:
-    """Collision hulls for ``mesh``: its convex hull if it is nearly convex, else coacd pieces.
+    """Collision hulls for ``mesh``: its convex hull if it is nearly convex, the hulls of its bodies
+    if it is a few separate convex bodies (:func:`convex_bodies`), else coacd pieces.
 
     ``threshold`` is coacd's concavity tolerance (relative to the bounding-box diagonal): larger
     is faster with fewer hulls. coacd runs with ``preprocess_mode="off"`` (its manifold
@@ -108,6 +123,10 @@ def convex_decompose(
     """
     if not force_coacd and is_nearly_convex(mesh):
         return [hull_of(mesh.vertices, max_hull_vertices)]
+    if not force_coacd:
+        bodies = convex_bodies(mesh, max_hulls)
+        if bodies is not None:
+            return [hull_of(b.vertices, max_hull_vertices) for b in bodies]
     import coacd  # imported lazily: loading its native library costs time and prints a banner
 
     coacd.set_log_level("error")

@@ -25,6 +25,7 @@ from d3grasp.authoring.convex import MAX_HULL_VERTICES, MAX_HULLS, convex_decomp
 from d3grasp.authoring.manifest import AssetEntry, read_manifest, size_bin_of, write_manifest
 from d3grasp.authoring.meshcheck import MeshError, load_and_check
 from d3grasp.authoring.usd_rigid import mass_properties, write_rigid_usd
+from d3grasp.parallel import run_units
 
 # Defaults for imported meshes: a hard plastic for rigid objects, a foam for soft ones.
 DEFAULT_RIGID_DENSITY = 1000.0  # kg/m^3
@@ -236,6 +237,36 @@ def author_soft(
     )
 
 
+def _author_one(
+    path: Path, aid: str, mesh: trimesh.Trimesh, tmp: Path, opts: dict[str, Any]
+) -> AssetEntry | str:
+    """Author one checked mesh into ``tmp``: its entry, or the one-line reason it was refused (a
+    string, so a refusal crosses a process boundary as plain data)."""
+    scale = opts["scale"]
+    src = f"import:{path.name}" + (f" scale={scale:g}" if scale != 1.0 else "")
+    common = {
+        "family": opts["family"],
+        "density": opts["density"],
+        "friction": opts["friction"],
+        "source": src,
+    }
+    try:
+        if opts["deformable"]:
+            return author_soft(
+                mesh,
+                tmp,
+                aid,
+                youngs_modulus=opts["youngs_modulus"],
+                poissons_ratio=opts["poissons_ratio"],
+                target_tets=opts["target_tets"],
+                label=str(path),
+                **common,
+            )
+        return author_rigid(mesh, tmp, aid, **common)
+    except MeshError as exc:
+        return str(exc)
+
+
 def _unique_ids(paths: list[Path], taken: set[str]) -> list[str]:
     ids = []
     used = set(taken)
@@ -273,6 +304,7 @@ def import_meshes(
     family: str = "imported",
     skip_invalid: bool = False,
     progress: Callable[[Iterable[Any]], Iterable[Any]] | None = None,
+    workers: int = 1,
 ) -> ImportResult:
     """Import user meshes into the library at ``out_dir`` (USD files + ``out_dir/manifest.json``).
 
@@ -284,7 +316,8 @@ def import_meshes(
     manifest (re-imports of the same file name) replace the old ones, the old file too when the
     kind changed (rigid and soft assets live in different folders); they are listed in
     ``ImportResult.replaced``. Other entries are kept. ``progress`` wraps the per-mesh loop
-    (e.g. ``tqdm``).
+    (e.g. ``tqdm``). ``workers`` processes author the meshes (``d3grasp.parallel``); the assets
+    do not depend on their number.
     """
     paths = [Path(p) for p in paths]
     if not paths:
@@ -335,30 +368,37 @@ def import_meshes(
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".d3grasp-import-", dir=out_dir.parent))
     try:
+        opts = {
+            "deformable": deformable,
+            "family": family,
+            "density": rho,
+            "friction": mu,
+            "youngs_modulus": youngs_modulus,
+            "poissons_ratio": poissons_ratio,
+            "target_tets": target_tets,
+            "scale": scale,
+        }
+        units = [(p, aid, mesh, tmp, opts) for p, aid, mesh in items]
+        authored: dict[int, AssetEntry | str] = {}
+        bar = iter(progress(items)) if progress else None
+        if bar is not None:
+            next(bar, None)  # show the bar at 0 before the first (slow) mesh
+
+        def done(k: int, result: AssetEntry | str) -> None:
+            authored[k] = result
+            if bar is not None:
+                next(bar, None)
+
+        # coacd (minutes for a many-part shape) and tet meshing are per mesh and independent: one
+        # process per core; each mesh's asset is the same whichever process authored it.
+        run_units(_author_one, units, workers, done)
         entries: list[AssetEntry] = []
-        for p, aid, mesh in progress(items) if progress else items:
-            src = f"import:{p.name}" + (f" scale={scale:g}" if scale != 1.0 else "")
-            try:
-                if deformable:
-                    e = author_soft(
-                        mesh,
-                        tmp,
-                        aid,
-                        family=family,
-                        youngs_modulus=youngs_modulus,
-                        poissons_ratio=poissons_ratio,
-                        density=rho,
-                        friction=mu,
-                        target_tets=target_tets,
-                        source=src,
-                        label=str(p),
-                    )
-                else:
-                    e = author_rigid(mesh, tmp, aid, family=family, density=rho, friction=mu, source=src)
-            except MeshError as exc:
-                refuse(p, exc)
+        for k, (p, _aid, _mesh) in enumerate(items):
+            result = authored[k]
+            if isinstance(result, str):
+                refuse(p, MeshError(result))
                 continue
-            entries.append(e)
+            entries.append(result)
         if not entries:
             reasons = "; ".join(f"{p.name}: {why}" for p, why in skipped[:3])
             raise MeshError(f"{out_dir}: none of the {len(paths)} meshes could be imported ({reasons})")

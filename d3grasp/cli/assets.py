@@ -3,7 +3,7 @@
     d3grasp-assets build [--tools-dir DIR] [--out DIR] [--only hand,rigid,soft]
     d3grasp-assets import MESH... --out DIR [--deformable --youngs-modulus E --poisson P --target-tets N]
                           [--density RHO] [--friction MU] [--scale S] [--family NAME]
-                          [--skip-invalid] [--no-plan-grasps]
+                          [--skip-invalid] [--no-plan-grasps] [--workers N]
     d3grasp-assets validate [DIR|MANIFEST] [--no-hand]
     d3grasp-assets list [DIR|MANIFEST]
     d3grasp-assets plan-grasps [DIR|MANIFEST] [--ids A,B] [--seed S] [--workers N] [--per-type K]
@@ -121,6 +121,7 @@ def cmd_build(args: argparse.Namespace) -> int:
 def cmd_import(args: argparse.Namespace) -> int:
     from d3grasp.authoring.importer import import_meshes
     from d3grasp.authoring.meshcheck import MeshError
+    from d3grasp.parallel import default_workers
 
     kw: dict[str, Any] = {}
     if args.youngs_modulus is not None:
@@ -142,6 +143,7 @@ def cmd_import(args: argparse.Namespace) -> int:
             family=args.family,
             skip_invalid=args.skip_invalid,
             progress=_progress("import", "mesh"),
+            workers=args.workers or default_workers(),
             **kw,
         )
     except (MeshError, ValueError, FileNotFoundError, ImportError) as exc:
@@ -161,7 +163,9 @@ def cmd_import(args: argparse.Namespace) -> int:
     print(f"{len(result.entries)} assets written; manifest {Path(args.out) / 'manifest.json'}")
     if args.plan_grasps and result.entries:
         # The same treatment as a shipped object: candidate grasps scored in simulation.
-        code = _plan_grasps(Path(args.out) / "manifest.json", [e.id for e in result.entries])
+        code = _plan_grasps(
+            Path(args.out) / "manifest.json", [e.id for e in result.entries], workers=args.workers
+        )
         if code:
             return code
     for path, why in result.skipped:
@@ -310,6 +314,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_false",
         help="skip planning the new objects' grasps (plan-grasps; ~10-30 s a rigid object per core): "
         "until planned they get the geometric rule's grasp",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="processes for authoring and grasp planning (default: the machine's cores)",
     )
     p.set_defaults(func=cmd_import)
 

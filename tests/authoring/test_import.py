@@ -226,3 +226,40 @@ def test_import_deformable_sphere(tmp_path: Path) -> None:
     assert report.ok, report.failures()
     k_mu = E / (2 * (1 + nu))
     assert report.assets[0].checks["material: k_mu"] and k_mu > 0
+
+
+def test_import_on_two_processes_writes_what_one_writes(tmp_path: Path) -> None:
+    # Authoring runs one mesh per process (coacd takes minutes on a many-part shape); the files and
+    # the manifest must not depend on how many processes wrote them.
+    paths = []
+    for name, ext in (("brick", (0.07, 0.05, 0.04)), ("bar", (0.11, 0.03, 0.02)), ("cube", (0.05,) * 3)):
+        trimesh.creation.box(extents=ext).export(tmp_path / f"{name}.obj")
+        paths.append(tmp_path / f"{name}.obj")
+    one = import_meshes(paths, tmp_path / "one", workers=1).entries
+    two = import_meshes(paths, tmp_path / "two", workers=2).entries
+    assert [e.id for e in two] == [e.id for e in one] == ["brick", "bar", "cube"]  # input order kept
+    for e in one:
+        assert (tmp_path / "two" / e.path).read_bytes() == (tmp_path / "one" / e.path).read_bytes()
+    assert (tmp_path / "two" / "manifest.json").read_bytes() == (
+        tmp_path / "one" / "manifest.json"
+    ).read_bytes()
+
+
+def test_separate_convex_bodies_become_their_own_hulls() -> None:
+    # A shape modelled as overlapping primitives (two crossing bars and a disc): each body's hull is
+    # the exact decomposition, with each body's own volume; coacd is not needed (and took minutes).
+    from d3grasp.authoring.convex import convex_bodies, convex_decompose
+
+    bar_x = trimesh.creation.box(extents=(0.08, 0.02, 0.02))
+    bar_y = trimesh.creation.box(extents=(0.02, 0.06, 0.02))
+    disc = trimesh.creation.cylinder(radius=0.015, height=0.01, sections=24)
+    disc.apply_translation((0.0, 0.0, 0.015))
+    mesh = trimesh.util.concatenate([bar_x, bar_y, disc])
+    hulls = convex_decompose(mesh)
+    expected = sorted([0.08 * 0.02 * 0.02, 0.02 * 0.06 * 0.02, float(disc.volume)])
+    assert sorted(h.volume for h in hulls) == pytest.approx(expected, rel=1e-9)
+    # Not this path: one body, a non-convex body among them, or more bodies than hulls allowed.
+    assert convex_bodies(bar_x) is None
+    torus = trimesh.creation.torus(major_radius=0.03, minor_radius=0.008)
+    assert convex_bodies(trimesh.util.concatenate([bar_x, torus])) is None
+    assert convex_bodies(mesh, max_bodies=2) is None
