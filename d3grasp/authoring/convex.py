@@ -91,6 +91,12 @@ def is_nearly_convex(mesh: trimesh.Trimesh, ratio: float = CONVEX_VOLUME_RATIO) 
     return float(mesh.volume) >= ratio * float(mesh.convex_hull.volume)
 
 
+def _centroid_key(piece: Hull | trimesh.Trimesh) -> tuple[float, ...]:
+    """A deterministic order for collision pieces (coacd's output order and a mesh's body order can
+    vary): by the mean of their vertices, rounded so round-off does not reorder them."""
+    return tuple(np.round(np.asarray(piece.vertices).mean(axis=0), 6))
+
+
 def convex_bodies(mesh: trimesh.Trimesh, max_bodies: int = MAX_HULLS) -> list[trimesh.Trimesh] | None:
     """The separate closed bodies of ``mesh`` when it is made of 2 to ``max_bodies`` of them and every
     one is nearly convex (a shape modelled as overlapping primitives), in a fixed order; else None.
@@ -102,7 +108,7 @@ def convex_bodies(mesh: trimesh.Trimesh, max_bodies: int = MAX_HULLS) -> list[tr
     bodies = mesh.split(only_watertight=False)
     if not (2 <= len(bodies) <= max_bodies) or not all(is_nearly_convex(b) for b in bodies):
         return None
-    return sorted(bodies, key=lambda b: tuple(np.round(np.asarray(b.vertices).mean(axis=0), 6)))
+    return sorted(bodies, key=_centroid_key)
 
 
 def convex_decompose(
@@ -163,5 +169,5 @@ def convex_decompose(
     if not hulls:  # coacd failed to split: one hull still gives a usable collider
         hulls = [hull_of(mesh.vertices, max_hull_vertices)]
     # Deterministic order (coacd's output order can vary): sort by centroid.
-    hulls.sort(key=lambda h: tuple(np.round(h.vertices.mean(axis=0), 6)))
+    hulls.sort(key=_centroid_key)
     return hulls[:max_hulls]
