@@ -10,7 +10,11 @@ first candidate; the others vary what decides whether a closing hand holds the o
 - the hand's pitch, for objects lower than the curling finger tips reach (< 5 cm): a palm-down hand
   tipped by up to 0.35 rad keeps its finger tips off the table while they close;
 - the pre-shape (abduction of the fingers' first joints): fingers spread or together, the thumb
-  rotated towards or away from the fingers.
+  rotated towards or away from the fingers;
+- for an object made of several collision pieces (its convex hulls), each type's placement on each
+  of the largest pieces as if it were the object: a composite's bounding box can be mostly air (the
+  16 pybullet random_urdfs meshes fill 3-16% of it where none lifted), and a hand closed on the
+  box's centre closes on nothing.
 
 Candidates are drawn from a generator seeded by the planner's seed and the object's id, so a plan is
 the same on every run and does not depend on which other objects are planned with it.
@@ -19,7 +23,9 @@ the same on every run and does not depend on which other objects are planned wit
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -49,6 +55,8 @@ class CandidateConfig:
     # Object's face nearest the palm (palm-frame z) when under the palm: just off the palm face.
     under_top: tuple[float, float] = (PALM_FACE_Z + 0.0015, PALM_FACE_Z + 0.012)
     front_top: tuple[float, float] = (0.0, 0.03)  # m, in front of the palm (the front face backs it)
+    max_pieces: int = 4  # composite objects: placements on this many of the largest pieces
+    min_piece: float = 0.02  # m: a piece's longest side below this is too small to close on
 
 
 def object_seed(seed: int, object_id: str) -> int:
@@ -68,9 +76,13 @@ def candidates(
     seed: int = 0,
     cfg: CandidateConfig | None = None,
     soft: bool = False,
+    pieces: Sequence[tuple[np.ndarray, np.ndarray]] = (),
 ) -> list[ObjectGrasp]:
     """The candidate grasps of an object of ``extents`` (its bounding box, object frame), in order:
-    per type the geometric placement first, then the drawn ones."""
+    per type the geometric placement first, then the drawn ones, then those on its pieces.
+
+    ``pieces``: (centre, extents) of each collision piece's bounding box in the object frame (the
+    frame of ``extents``' box centre), :func:`collision_pieces`; one piece or none adds nothing."""
     cfg = cfg or CandidateConfig()
     per_type = cfg.per_type_soft if soft else cfg.per_type
     ex = np.asarray(extents, dtype=np.float64)
@@ -109,6 +121,51 @@ def candidates(
             drawn += 1
             if g.feasible:
                 out.append(g)
+        out += _piece_grasps(grasp, ex, h, pieces, cfg)
+    return out
+
+
+def _piece_grasps(
+    grasp: str,
+    extents: np.ndarray,
+    rest_h: float,
+    pieces: Sequence[tuple[np.ndarray, np.ndarray]],
+    cfg: CandidateConfig,
+) -> list[ObjectGrasp]:
+    """The type's geometric placement on each of the largest ``cfg.max_pieces`` pieces."""
+    if len(pieces) < 2:
+        return []
+    vertical = GRASPS[grasp].palm_vertical
+    big = sorted(
+        (p for p in pieces if float(np.max(p[1])) >= cfg.min_piece),
+        key=lambda p: (-float(np.prod(p[1])), *np.round(p[0], 6)),
+    )[: cfg.max_pieces]
+    out: list[ObjectGrasp] = []
+    for centre, ex in big:
+        c = np.asarray(centre, dtype=np.float64)
+        ex = np.asarray(ex, dtype=np.float64)
+        h = rest_h + float(c[2])  # the piece's centre above the table
+        low = h + 0.5 * float(ex[2]) < LOW_OBJECT  # its top lower than the curling tips reach
+        pitch = 0.5 * MAX_PITCH if low and not vertical else 0.0
+        g = object_grasp(grasp, ex, h, pitch=pitch)
+        if g.feasible:
+            out.append(replace(g, palm_pos=np.asarray(g.palm_pos) + c))
+    return out
+
+
+def collision_pieces(usd_path: str | Path) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(centre, extents) of the bounding box of each collision hull of a rigid object's USD file, in
+    the object frame (the authoring tools centre the object's box at the origin)."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(usd_path))
+    out = []
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.Mesh) and prim.GetParent().GetName() == "collision":
+            pts = np.asarray(UsdGeom.Mesh(prim).GetPointsAttr().Get(), dtype=np.float64)
+            if len(pts):
+                lo, hi = pts.min(axis=0), pts.max(axis=0)
+                out.append((0.5 * (lo + hi), hi - lo))
     return out
 
 

@@ -11,7 +11,10 @@ Per object, two rounds in multi-world environments (``d3grasp.planner.score``):
 Objects are planned in fixed groups (``objects_per_unit`` in library order) whatever the number of
 worker processes, so a plan is the same for a seed on any number of cores. The grasp file is
 rewritten (atomically) after every group, and a rerun skips the objects it already holds for the
-same asset file and planner settings: an interrupted run resumes where it stopped.
+same asset file and planner settings: an interrupted run resumes where it stopped. Under other
+settings, a group whose trials those settings ran as these would (its objects' candidates and the
+scoring unchanged: e.g. no composite among them when only the pieces' candidates are new) keeps its
+records, which a fresh plan would reproduce.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from d3grasp.envs.grasp_file import (
     read_grasp_file,
 )
 from d3grasp.parallel import run_units
-from d3grasp.planner.candidates import CandidateConfig, candidates, perturbed
+from d3grasp.planner.candidates import CandidateConfig, candidates, collision_pieces, perturbed
 from d3grasp.planner.score import ScoringConfig, Trial, run_trials, trial_score
 
 # Object displaced by (dx, dy) m and turned by dyaw rad from where the planner thinks it is: the
@@ -59,15 +62,54 @@ class PlannerConfig:
         return json.loads(json.dumps(d))
 
 
+# What a grasp file recorded before a candidate setting existed: the behaviour it was planned with.
+CANDIDATES_BEFORE: dict[str, Any] = {"max_pieces": 0}
+
+
+def config_of_record(record: dict[str, Any]) -> PlannerConfig | None:
+    """The settings a grasp file records (:meth:`PlannerConfig.record`), or None for a record this
+    planner cannot read back (then nothing of that file is reused)."""
+    try:
+        cand = {**CANDIDATES_BEFORE, **record["candidates"]}
+        cand = {k: tuple(v) if isinstance(v, list) else v for k, v in cand.items()}
+        if [tuple(p) for p in record["perturbations"]] != list(PERTURBATIONS):
+            return None
+        return PlannerConfig(
+            seed=record["seed"],
+            candidates=CandidateConfig(**cand),
+            scoring=ScoringConfig(**record["scoring"]),
+            finalists=record["finalists"],
+        )
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def _candidates_of(row: dict[str, Any], cfg: PlannerConfig) -> list[Any]:
+    """The candidates of a unit's object row (id, kind, extents, pieces) under ``cfg``."""
+    pieces = [(np.asarray(c), np.asarray(x)) for c, x in row.get("pieces", ())]
+    soft = row["kind"] == "deformable"
+    return candidates(row["id"], np.asarray(row["extents"]), cfg.seed, cfg.candidates, soft, pieces)
+
+
+def same_trials(old: PlannerConfig, new: PlannerConfig, rows: Sequence[dict[str, Any]]) -> bool:
+    """Whether planning the group ``rows`` under ``old`` and ``new`` runs the same trials (then it
+    gives the same plan: a group's trials depend on nothing else)."""
+    if (old.seed, old.scoring, old.finalists) != (new.seed, new.scoring, new.finalists):
+        return False
+    for row in rows:
+        a, b = _candidates_of(row, old), _candidates_of(row, new)
+        if [g.to_json() for g in a] != [g.to_json() for g in b]:
+            return False
+    return True
+
+
 def plan_unit(
     manifest: str, entries: Sequence[dict[str, Any]], cfg: PlannerConfig
 ) -> dict[str, dict[str, Any]]:
     """Plan a group of objects (``entries``: id, kind, extents); the grasp file records by id."""
     trials: list[Trial] = []
     for e in entries:
-        soft = e["kind"] == "deformable"
-        for g in candidates(e["id"], np.asarray(e["extents"]), cfg.seed, cfg.candidates, soft=soft):
-            trials.append(Trial(e["id"], g))
+        trials += [Trial(e["id"], g) for g in _candidates_of(e, cfg)]
     records = run_trials(trials, manifest, cfg.scoring)
     # Round 1's trials by object and grasp type, in candidate order.
     by_type: dict[tuple[str, str], list[tuple[float, Trial, dict[str, Any]]]] = {}
@@ -153,14 +195,14 @@ def plan_grasps(
         "planner": settings,
         "objects": {},
     }
+    earlier: tuple[PlannerConfig, dict[str, Any]] | None = None  # a plan of other settings
     if path.is_file():
         old = read_grasp_file(path)
         if old.get("planner") == settings:
             data["objects"] = old["objects"]
+        elif (old_cfg := config_of_record(old.get("planner") or {})) is not None:
+            earlier = (old_cfg, old["objects"])
     sha = {e.id: asset_sha256(resolve_asset_path(manifest, e)) for e in entries}
-    done = {e.id for e in entries if data["objects"].get(e.id, {}).get("asset_sha256") == sha[e.id]}
-    if done:
-        log(f"[plan-grasps] {len(done)} of {len(entries)} planned already ({path.name})")
     # Fixed groups of the whole selection in library order (rigid objects first: a FEM step costs
     # ~20x a rigid one, d3grasp.eval.evaluate.SOFT_COST, and the two kinds never share a group, so a
     # group of rigid objects runs at 5 solver iterations), whatever is planned already and
@@ -171,8 +213,39 @@ def plan_grasps(
     units = []
     for kind in ("rigid", "deformable"):
         mine = sorted((e for e in entries if e.kind == kind), key=lambda e: order[e.id])
-        rows = [{"id": e.id, "kind": e.kind, "extents": list(e.extents)} for e in mine]
+        rows = [
+            {
+                "id": e.id,
+                "kind": e.kind,
+                "extents": list(e.extents),
+                # The collision pieces of a rigid object (composites get candidates on them), at the
+                # authoring precision: the same candidates whichever process reads the file.
+                "pieces": [
+                    (stable_json(c.tolist()), stable_json(x.tolist()))
+                    for c, x in collision_pieces(resolve_asset_path(manifest, e))
+                ]
+                if e.kind == "rigid"
+                else [],
+            }
+            for e in mine
+        ]
         units += [rows[k : k + cfg.objects_per_unit] for k in range(0, len(rows), cfg.objects_per_unit)]
+    if earlier is not None:
+        # A plan of other settings: a group whose trials those settings ran as these would (e.g. no
+        # composite among its objects when the settings differ by the pieces' candidates) is kept.
+        old_cfg, old_objects = earlier
+        kept = 0
+        for unit in units:
+            recs = {e["id"]: old_objects.get(e["id"]) for e in unit}
+            current = all(r is not None and r.get("asset_sha256") == sha[i] for i, r in recs.items())
+            if current and same_trials(old_cfg, cfg, unit):
+                data["objects"].update(recs)
+                kept += len(unit)
+        if kept:
+            log(f"[plan-grasps] {kept} objects kept from the plan of other settings: the same trials")
+    done = {e.id for e in entries if data["objects"].get(e.id, {}).get("asset_sha256") == sha[e.id]}
+    if done:
+        log(f"[plan-grasps] {len(done)} of {len(entries)} planned already ({path.name})")
     units = [u for u in units if any(e["id"] not in done for e in u)]
     todo = [e for u in units for e in u]
 

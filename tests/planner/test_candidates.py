@@ -9,7 +9,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from d3grasp.envs.grasps import GRASPS, ObjectGrasp, object_grasp
-from d3grasp.planner.candidates import CandidateConfig, candidates, perturbed, rest_height
+from d3grasp.planner.candidates import (
+    MAX_PITCH,
+    CandidateConfig,
+    candidates,
+    collision_pieces,
+    perturbed,
+    rest_height,
+)
 
 
 def _object_in_palm(grasp: ObjectGrasp, obj_pos: np.ndarray, yaw: float) -> np.ndarray:
@@ -103,3 +110,69 @@ def test_object_grasp_json_round_trip_and_errors() -> None:
         ObjectGrasp.from_json(bad)
     with pytest.raises(ValueError, match="palm_pos"):
         ObjectGrasp.from_json(g.to_json() | {"palm_pos": [0.0, 1.0]})
+
+
+def _two_bar_usd(tmp_path) -> tuple[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """An L of two bars (8 x 2 x 2 cm along x, 2 x 6 x 2 cm along y) written as a rigid USD file,
+    centred on its bounding box as the authoring tools centre objects, with the bars' boxes."""
+    import trimesh
+
+    from d3grasp.authoring.convex import hull_of
+    from d3grasp.authoring.usd_rigid import mass_properties, write_rigid_usd
+
+    a = trimesh.creation.box(extents=(0.08, 0.02, 0.02))
+    a.apply_translation((0.0, -0.03, 0.0))
+    b = trimesh.creation.box(extents=(0.02, 0.06, 0.02))
+    b.apply_translation((0.03, 0.01, 0.0))
+    shift = -0.5 * (np.array([-0.04, -0.04, -0.01]) + np.array([0.04, 0.04, 0.01]))
+    for m in (a, b):
+        m.apply_translation(shift)
+    mesh = trimesh.util.concatenate([a, b])
+    path = write_rigid_usd(
+        tmp_path / "ell.usda",
+        "ell",
+        mesh,
+        [hull_of(a.vertices), hull_of(b.vertices)],
+        mass_properties(mesh, 500.0),
+        density=500.0,
+        friction=1.0,
+    )
+    boxes = [(np.array([0.0, -0.03, 0.0]) + shift, np.array([0.08, 0.02, 0.02]))]
+    boxes.append((np.array([0.03, 0.01, 0.0]) + shift, np.array([0.02, 0.06, 0.02])))
+    return str(path), boxes
+
+
+def test_collision_pieces_read_each_hulls_box(tmp_path) -> None:
+    path, boxes = _two_bar_usd(tmp_path)
+    pieces = sorted(collision_pieces(path), key=lambda p: -p[1][0])
+    assert len(pieces) == 2
+    for (c, ex), (c_ref, ex_ref) in zip(pieces, boxes, strict=True):
+        np.testing.assert_allclose(c, c_ref, atol=1e-6)
+        np.testing.assert_allclose(ex, ex_ref, atol=1e-6)
+
+
+def test_a_composite_gets_each_type_placed_on_its_pieces(tmp_path) -> None:
+    _, boxes = _two_bar_usd(tmp_path)
+    ex = np.array([0.08, 0.08, 0.02])
+    plain = candidates("ell", ex, 0)
+    with_pieces = candidates("ell", ex, 0, pieces=boxes)
+    extra = [
+        g for g in with_pieces if not any(g is p or np.array_equal(g.palm_pos, p.palm_pos) for p in plain)
+    ]
+    # The box's candidates are unchanged; the palm-down types (top, pinch) get one grasp per bar (the
+    # side wrap of a 2 cm high object would put the hand's edge into the table).
+    assert len(with_pieces) == len(plain) + len(extra)
+    assert sorted(g.grasp for g in extra) == ["pinch", "pinch", "top", "top"]
+
+    # Each holds its bar where the type's placement holds a lone object of the bar's size (pitched:
+    # the bars' tops are 2.1 cm above the table, below the curling finger tips).
+    def holds_bar_as_lone(g: ObjectGrasp, c: np.ndarray, bar: np.ndarray) -> bool:
+        lone = object_grasp(g.grasp, bar, rest_height(ex) + c[2], pitch=0.5 * MAX_PITCH)
+        r, r_lone = (Rotation.from_quat(x.palm_quat).as_matrix() for x in (g, lone))
+        return bool(np.allclose(r.T @ (c - g.palm_pos), r_lone.T @ -lone.palm_pos, atol=1e-9))
+
+    for grasp_type in ("top", "pinch"):
+        mine = [g for g in extra if g.grasp == grasp_type]
+        assert all(any(holds_bar_as_lone(g, c, bar) for g in mine) for c, bar in boxes)
+    # A single piece adds nothing.
+    assert len(candidates("ell", ex, 0, pieces=boxes[:1])) == len(plain)

@@ -11,7 +11,7 @@ from pathlib import Path
 from d3grasp.authoring.manifest import read_manifest
 from d3grasp.envs.grasp_file import grasp_file_path, load_grasp_plan, read_grasp_file
 from d3grasp.paths import default_manifest
-from d3grasp.planner.plan import PlannerConfig, plan_grasps
+from d3grasp.planner.plan import PlannerConfig, config_of_record, plan_grasps, same_trials
 from d3grasp.planner.score import trial_score
 
 BOX = "box_01"  # 9.5 x 3.4 x 6.6 cm, 138 g: the top hook and the side wrap both lift it (measured)
@@ -59,3 +59,24 @@ def test_plan_a_box_in_simulation_and_resume(tmp_path: Path) -> None:
     plan_grasps(manifest, cfg=cfg, progress=False, log=logs.append)
     assert path.read_bytes() == before
     assert any("planned already" in line for line in logs)
+    # A plan of other settings keeps the groups whose trials those settings ran as these would: the
+    # box is one convex piece, so a planner without the pieces' candidates planned it the same way.
+    data = json.loads(before)
+    del data["planner"]["candidates"]["max_pieces"]
+    path.write_text(json.dumps(data))
+    plan_grasps(manifest, cfg=cfg, progress=False, log=logs.append)
+    assert json.loads(path.read_bytes())["objects"] == json.loads(before)["objects"]
+    assert any("kept from the plan of other settings" in line for line in logs)
+
+
+def test_a_composite_is_replanned_when_its_candidates_change() -> None:
+    cfg = PlannerConfig()
+    before = config_of_record(cfg.record() | {"candidates": {**cfg.record()["candidates"], "max_pieces": 0}})
+    assert before is not None and before.candidates.max_pieces == 0
+    bar = ([0.0, -0.03, 0.0], [0.08, 0.02, 0.02])
+    post = ([0.03, 0.01, 0.0], [0.02, 0.06, 0.02])
+    ell = {"id": "ell", "kind": "rigid", "extents": [0.08, 0.08, 0.02], "pieces": [bar, post]}
+    lone = {**ell, "pieces": [bar]}
+    assert not same_trials(before, cfg, [ell])
+    assert same_trials(before, cfg, [lone])
+    assert config_of_record({"seed": 0}) is None  # not a record this planner can read back
