@@ -7,9 +7,10 @@ object keeps curling its distal links around it, one whose tip meets it stops en
 the "close at constant speed until the pads exceed a force threshold" rule applied per joint,
 which is what an under-actuated gripper does mechanically; ``per_joint=False`` stops a whole
 finger at its first touch instead. A stopped joint keeps a small extra squeeze (``squeeze`` rad
-beyond where it stopped, i.e. ``squeeze * ke`` of drive torque) and holds it through lift, hold and
-disturbance. Abduction joints stay at the middle of their range; fingers the grasp type does not
-use stay open. The thumb's first flexion link carries no pad: its joint stops with the thumb's pads.
+beyond where it stopped, i.e. ``squeeze * ke`` of drive torque; ``squeeze_deformable`` on a soft
+object) and holds it through lift, hold and disturbance. Abduction joints stay at the middle of
+their range; fingers the grasp type does not use stay open. The thumb's first flexion link carries
+no pad: its joint stops with the thumb's pads.
 
 :func:`rule_step` is the rule as a function of tensors (pad forces, joint positions, whether the
 hand is closing, the grasp type) with its state in :class:`RuleState`; it knows nothing of the
@@ -47,7 +48,13 @@ from d3grasp.vocabulary import GRASP_TYPES, PHASES
 class BaselineConfig:
     close_speed: float = 1.5  # rad/s of joint target per flexion joint
     force_threshold: float = 0.5  # N on a pad stops the joints proximal to it
-    squeeze: float = 0.1  # rad added beyond the stopping point
+    squeeze: float = 0.1  # rad added beyond the stopping point (rigid objects)
+    # A soft object gives under the pads: at 0.1 rad the grip forms on the few nodes under the
+    # fingertips and the pushes tear the body out (docs/design.md, Soft objects under the push).
+    # Measured on the 20 soft train objects (seed 0): 0.25 rad held 12 through the six pushes against
+    # 7; on the 104 rigid train objects the same 0.25 lifted 61 against 81 (a grip closed on touch is
+    # an equilibrium that a deeper squeeze breaks), so rigid objects keep 0.1.
+    squeeze_deformable: float = 0.25
     per_joint: bool = True  # False: a finger's first touch stops all of its joints
 
 
@@ -121,6 +128,13 @@ class RuleTables:
         return cls(stop_matrix(cfg.per_joint).to(dev).float(), grasp_closing_joints().to(dev), upper)
 
 
+def squeeze_per_world(cfg: BaselineConfig, object_soft: torch.Tensor) -> torch.Tensor:
+    """(W, 1) rad of squeeze beyond the stopping point: ``squeeze_deformable`` where ``object_soft``
+    (W,) bool, else ``squeeze``."""
+    squeeze = torch.where(object_soft, cfg.squeeze_deformable, cfg.squeeze)
+    return squeeze.to(torch.float32)[:, None]
+
+
 def rule_step(
     state: RuleState,
     tables: RuleTables,
@@ -130,11 +144,13 @@ def rule_step(
     closing: torch.Tensor,
     grasp_id: torch.Tensor,
     dt: float,
+    object_soft: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Advance the rule by one control step of ``dt`` s and return the joint targets (W, 16).
 
     ``pad_force`` (W, 11, 3) the pad readings (N), ``joint_q`` (W, 16) the joint positions,
-    ``closing`` (W,) whether the grasp phase has begun, ``grasp_id`` (W,) the grasp type.
+    ``closing`` (W,) whether the grasp phase has begun, ``grasp_id`` (W,) the grasp type,
+    ``object_soft`` (W,) bool which worlds hold a soft object (None: none).
     """
     force = torch.linalg.norm(pad_force, dim=-1)  # (W, 11)
     touched = (force > cfg.force_threshold).float() @ tables.stops.T > 0  # (W, 16)
@@ -142,7 +158,11 @@ def rule_step(
     newly = touched & uses & ~state.stopped & closing[:, None]
     if newly.any():
         # Hold a stopping joint where it is now, plus the squeeze.
-        squeezed = torch.minimum(joint_q + cfg.squeeze, tables.upper)
+        if object_soft is None:
+            squeeze: torch.Tensor | float = cfg.squeeze
+        else:
+            squeeze = squeeze_per_world(cfg, object_soft.to(joint_q.device))
+        squeezed = torch.minimum(joint_q + squeeze, tables.upper)
         state.target = torch.where(newly, squeezed, state.target)
     state.stopped |= newly
     advance = closing[:, None] & uses & ~state.stopped
@@ -156,8 +176,9 @@ class RuleBasedController:
 
     ``env`` is any object with the environment's readings (``t_pad_force_object``, ``t_joint_q`` with
     ``i_finger_q``, ``episode_length_buf``, ``phase_of``, ``grasp_id``, ``dt``, joint limits
-    ``lower`` / ``upper``, ``normalize_joints``); in the residual action modes the environment runs
-    the rule itself (``env.residual_base``) and this controller's actions are the zero residual.
+    ``lower`` / ``upper``, ``normalize_joints``; ``object_soft`` if it has soft objects); in the
+    residual action modes the environment runs the rule itself (``env.residual_base``) and this
+    controller's actions are the zero residual.
     """
 
     def __init__(self, env: Any, cfg: BaselineConfig | None = None) -> None:
@@ -199,5 +220,6 @@ class RuleBasedController:
             closing,
             env.grasp_id,
             env.dt,
+            getattr(env, "object_soft", None),
         )
         return env.normalize_joints(target)

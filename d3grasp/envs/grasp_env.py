@@ -195,6 +195,7 @@ class GraspEnv:
         self.episode_return = zeros(W)
         self.failure = ["" for _ in range(W)]
         es = self.world_entries
+        self.object_soft = torch.as_tensor([e.kind == "deformable" for e in es], device=tdev)
         self.object_mass = torch.as_tensor([e.mass for e in es], dtype=f32, device=tdev)
         self.object_friction = torch.as_tensor(
             [float(e.material.get("friction", 1.0)) for e in es], dtype=f32, device=tdev

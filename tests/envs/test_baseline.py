@@ -98,3 +98,21 @@ def test_a_touch_stops_the_joints_proximal_to_the_pad_with_a_squeeze() -> None:
     after = rule_step(state, tables, CFG, _pads(1, {(0, 6): 5.0}), q, closing, grasp, DT)
     torch.testing.assert_close(after[0, 1:4], torch.tensor([0.40, 0.30, 0.20]))
     assert after[0, 9].item() == pytest.approx(1.57)  # min(1.55 + 0.1, upper)
+
+
+def test_a_soft_object_is_squeezed_deeper_than_a_rigid_one() -> None:
+    cfg = BaselineConfig(close_speed=1.5, force_threshold=0.5, squeeze=0.1, squeeze_deformable=0.25)
+    state, tables = _rule(2, cfg)
+    grasp = torch.full((2,), GRASP_TYPES.index("top"))
+    closing = torch.tensor([True, True])
+    q = torch.zeros(2, 16)
+    q[:, 1:4] = torch.tensor([0.30, 0.20, 0.10])
+    soft = torch.tensor([False, True])
+    pressed = _pads(2, {(0, 2): 2.0, (1, 2): 2.0})  # both index tips press
+    target = rule_step(state, tables, cfg, pressed, q, closing, grasp, DT, object_soft=soft)
+    torch.testing.assert_close(target[0, 1:4], torch.tensor([0.40, 0.30, 0.20]))  # rigid: q + 0.1
+    torch.testing.assert_close(target[1, 1:4], torch.tensor([0.55, 0.45, 0.35]))  # soft: q + 0.25
+    # Without the soft flags every world is squeezed as a rigid object.
+    state, tables = _rule(2, cfg)
+    target = rule_step(state, tables, cfg, pressed, q, closing, grasp, DT)
+    torch.testing.assert_close(target[:, 1:4], torch.tensor([[0.40, 0.30, 0.20]] * 2))
