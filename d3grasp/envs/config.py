@@ -58,6 +58,9 @@ class SimConfig:
     # contacts present, so the buffer is sized well above that.
     body_contact_buffer: int = 384
     use_graph: bool = True  # capture one control step as a Warp graph; False = plain loop (debug)
+    # Soft objects' tet elasticity by d3grasp.kernels.fem_elasticity (the same forces and Hessians as
+    # SolverVBD's kernel in closed form; False = Newton's kernel, to compare)
+    closed_form_tets: bool = True
     shape_mu: float = 1.0  # friction of hand and table shapes
     soft_contact_ke: float = 1.0e4
     soft_contact_kd: float = 1.0e-2

@@ -16,6 +16,7 @@ import warp as wp
 
 from d3grasp.envs.config import SimConfig
 from d3grasp.envs.scene import SceneLayout
+from d3grasp.kernels.fem_elasticity import use_closed_form_tets
 
 
 @wp.kernel
@@ -95,6 +96,15 @@ class Physics:
                 particle_enable_self_contact=False,
                 rigid_body_contact_buffer_size=sim.body_contact_buffer,
             )
+            if sim.closed_form_tets:
+                use_closed_form_tets(self.solver)
+            if not device.is_cuda:
+                # The body-particle contact kernel runs this many workers per colour and iteration,
+                # each striding over the active contacts (Newton sizes it to fill a GPU: one per
+                # particle). On the CPU backend a worker is a loop iteration with a call's overhead
+                # and the atomics are plain adds, so one worker does the same sums with no idle
+                # calls: 7% of a soft control step on the 4 soft test objects (797 contacts).
+                self.solver._particle_contact_worker_count = 1
             self.observables = self.solver.observables(kinds={"contact_f"}, contacts=self.contacts)
         self.object_force = wp.zeros(W, dtype=wp.vec3, device=device)
         self.object_body = wp.array(layout.object_body, dtype=wp.int32, device=device)
