@@ -155,6 +155,10 @@ def test_damping_force_is_the_dissipation_gradient_with_a_gauss_newton_hessian()
 
 def soft_grid_model(tri_ke: float = 0.0) -> newton.Model:
     points, tets = grid_tet_mesh(4, 3, 3, spacing=0.01)
+    # Positive orientation for every tet (half of the grid's come inverted): swap two corners.
+    e = points[tets[:, 1:]] - points[tets[:, :1]]
+    inverted = np.linalg.det(e.transpose(0, 2, 1)) < 0.0
+    tets[inverted] = tets[inverted][:, [0, 2, 1, 3]]
     builder = newton.ModelBuilder()
     builder.add_soft_mesh(
         pos=(0.0, 0.0, 0.05),
@@ -231,8 +235,8 @@ def test_solver_steps_with_the_closed_form_follow_newtons() -> None:
             solver.step(state_0, state_1, control, contacts, DT)
             state_0, state_1 = state_1, state_0
         finals[closed_form] = state_0.particle_q.numpy()
-    # It fell ~1 cm and met the ground; the two solves agree to well under the particle radius.
-    assert finals[False][:, 2].min() < 0.045
+    # It fell 0.1 s (~5 cm) onto the ground; the two solves agree to well under the particle radius.
+    assert finals[False][:, 2].min() < 0.005
     np.testing.assert_allclose(finals[True], finals[False], atol=2e-5)
     # The swap lasts only through the closed-form solver's own iterations.
     assert solver_vbd.solve_elasticity is newton_solve_elasticity
