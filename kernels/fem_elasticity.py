@@ -16,9 +16,10 @@ form, since ``d vec(F) / d x = m (x) I3``::
 
 (exact: J is linear in any one vertex, so the block has no d2J term). The damping term is Newton's as
 well: a dissipation ``V k / (2 dt) sum_ij (C_ij - C_prev_ij)^2`` of the right Cauchy-Green tensor
-``C = F^T F`` with its Gauss-Newton Hessian. On the soft test objects this kernel was 93% of a soft
-control step (20 iterations x 10 substeps x 7 colours of launches); the closed form does the same
-arithmetic in a fraction of the operations (bench: ``python -m d3grasp.bench env --kinds soft``).
+``C = F^T F`` with its Gauss-Newton Hessian. On the 4 soft test objects Newton's kernel was ~85% of a
+soft control step (20 iterations x 10 substeps x 7 colours of launches); the closed form takes 112
+against 199 us a launch and the step 214 against 376 ms (docs/design.md, Where a soft step's time
+goes; compare with ``python -m d3grasp.bench env --kinds soft --set sim.closed_form_tets=false``).
 
 Only the tets are handled: :func:`use_closed_form_tets` installs the kernel on a solver whose model has
 no membrane or bending elements (the soft objects are tet meshes whose surface triangles and edges
