@@ -28,7 +28,6 @@ carry zero material), and leaves any other solver on Newton's own kernel.
 
 from __future__ import annotations
 
-import numpy as np
 import warp as wp
 from newton._src.geometry import ParticleFlags
 from newton._src.solvers.vbd import solver_vbd
@@ -38,7 +37,7 @@ from newton._src.utils.mesh import (
     get_vertex_num_adjacent_tets,
 )
 
-__all__ = ["solve_elasticity_tets", "tet_vertex_force_hessian", "use_closed_form_tets", "is_tet_only"]
+__all__ = ["solve_elasticity_tets", "tet_vertex_force_hessian", "use_closed_form_tets"]
 
 
 @wp.func
@@ -150,23 +149,17 @@ def solve_elasticity_tets(
         particle_displacements[particle] = particle_displacements[particle] + wp.inverse(h) * f
 
 
-def is_tet_only(model) -> bool:
-    """True when ``model``'s particles carry tet elasticity only (no membrane or bending material,
-    no springs): the case :data:`solve_elasticity_tets` covers."""
-    if model.tet_count == 0 or model.spring_count > 0:
-        return False
-    if model.tri_count > 0 and np.any(model.tri_materials.numpy()[:, :2] > 0.0):
-        return False
-    return not (model.edge_count > 0 and np.any(model.edge_bending_properties.numpy()[:, 0] > 0.0))
-
-
 def use_closed_form_tets(solver) -> bool:
     """Make ``solver`` (a SolverVBD) solve its tets with :data:`solve_elasticity_tets`; return whether
     it does (only a tet-only model on the non-tiled path qualifies; any other keeps Newton's kernel).
 
     SolverVBD launches the kernel its module names ``solve_elasticity`` when a particle iteration runs;
     the swap holds for this solver's iterations alone (a captured graph keeps the kernel it recorded)."""
-    if getattr(solver, "use_particle_tile_solve", False) or not is_tet_only(solver.model):
+    # Newton's own test for a model whose elements carry tet material only (springs are accumulated
+    # by a kernel of their own, so they do not matter here).
+    if getattr(solver, "use_particle_tile_solve", False) or not solver_vbd._is_tet_only_elasticity_model(
+        solver.model
+    ):
         return False
     iterate = solver._solve_particle_iteration
 

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import warp as wp
 from d3grasp.kernels.fem_elasticity import (
-    is_tet_only,
     solve_elasticity_tets,
     tet_vertex_force_hessian,
     use_closed_form_tets,
@@ -22,16 +21,22 @@ wp.config.log_level = wp.LOG_WARNING
 MU, LMBD, DAMP, DT = 3.0e4, 5.0e4, 40.0, 1.0 / 600.0
 
 
+def edge_matrix(points: np.ndarray) -> np.ndarray:
+    """[x1 - x0, x2 - x0, x3 - x0] of a tet's four points."""
+    return np.column_stack([points[1] - points[0], points[2] - points[0], points[3] - points[0]])
+
+
 def rest_volume(rest: np.ndarray) -> float:
-    return (
-        abs(np.linalg.det(np.column_stack([rest[1] - rest[0], rest[2] - rest[0], rest[3] - rest[0]]))) / 6.0
-    )
+    return abs(np.linalg.det(edge_matrix(rest))) / 6.0
+
+
+def deformation_gradient(x: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    return edge_matrix(x) @ np.linalg.inv(edge_matrix(rest))
 
 
 def ref_energy(x: np.ndarray, rest: np.ndarray) -> float:
     """Rest volume x the stable Neo-Hookean energy density (Newton's form, without the log term)."""
-    Dm = np.column_stack([rest[1] - rest[0], rest[2] - rest[0], rest[3] - rest[0]])
-    F = np.column_stack([x[1] - x[0], x[2] - x[0], x[3] - x[0]]) @ np.linalg.inv(Dm)
+    F = deformation_gradient(x, rest)
     lmbd_nh = LMBD + MU
     alpha = 1.0 + MU / lmbd_nh
     psi = 0.5 * MU * (np.trace(F.T @ F) - 3.0) + 0.5 * lmbd_nh * (np.linalg.det(F) - alpha) ** 2
@@ -39,8 +44,7 @@ def ref_energy(x: np.ndarray, rest: np.ndarray) -> float:
 
 
 def ref_cauchy_green(x: np.ndarray, rest: np.ndarray) -> np.ndarray:
-    Dm = np.column_stack([rest[1] - rest[0], rest[2] - rest[0], rest[3] - rest[0]])
-    F = np.column_stack([x[1] - x[0], x[2] - x[0], x[3] - x[0]]) @ np.linalg.inv(Dm)
+    F = deformation_gradient(x, rest)
     return F.T @ F
 
 
@@ -77,7 +81,6 @@ def _corner_kernel(
 
 
 def corner_terms(x: np.ndarray, x_prev: np.ndarray, rest: np.ndarray, damping: float):
-    Dm = np.column_stack([rest[1] - rest[0], rest[2] - rest[0], rest[3] - rest[0]])
     forces = wp.zeros(4, dtype=wp.vec3)
     hessians = wp.zeros(4, dtype=wp.mat33)
     wp.launch(
@@ -87,7 +90,7 @@ def corner_terms(x: np.ndarray, x_prev: np.ndarray, rest: np.ndarray, damping: f
             wp.array(x_prev, dtype=wp.vec3),
             wp.array(x, dtype=wp.vec3),
             wp.array([[0, 1, 2, 3]], dtype=wp.int32),
-            wp.mat33(np.linalg.inv(Dm).astype(np.float32)),
+            wp.mat33(np.linalg.inv(edge_matrix(rest)).astype(np.float32)),
             damping,
         ],
         outputs=[forces, hessians],
@@ -243,7 +246,6 @@ def test_solver_steps_with_the_closed_form_follow_newtons() -> None:
 
 
 def test_only_tet_only_models_get_the_closed_form() -> None:
-    assert is_tet_only(soft_grid_model())
+    assert use_closed_form_tets(newton.solvers.SolverVBD(soft_grid_model(), iterations=1))
     membrane = soft_grid_model(tri_ke=100.0)
-    assert not is_tet_only(membrane)
     assert not use_closed_form_tets(newton.solvers.SolverVBD(membrane, iterations=1))
