@@ -29,7 +29,7 @@ from tensordict import TensorDict
 
 from d3grasp.authoring.hand import quat_xyzw_to_matrix
 from d3grasp.authoring.manifest import resolve_asset_path
-from d3grasp.dexhand13 import ABDUCTION_JOINTS, NUM_FINGER_JOINTS, NUM_FINGERS
+from d3grasp.dexhand13 import ABDUCTION_JOINTS, NUM_FINGER_JOINTS, NUM_FINGERS, NUM_PADS
 from d3grasp.envs.baseline import RuleBasedController, rest_targets
 from d3grasp.envs.config import ACTION_MODES, GRASP_SOURCES, PERCEPTION_MODES, GraspEnvConfig
 from d3grasp.envs.grasp_file import load_grasp_plan
@@ -189,6 +189,9 @@ class GraspEnv:
         self.max_push_motion = zeros(W)  # m: the most the object moved against the palm in a push
         # Per-episode outcome bookkeeping.
         self.s_grasp = zeros(W, dtype=torch.bool)
+        # Which pads touch the object (> GRASP_CONTACT_FORCE) when the lift starts and when it ends.
+        self.pads_at_lift = zeros(W, NUM_PADS, dtype=torch.bool)
+        self.pads_at_hold = zeros(W, NUM_PADS, dtype=torch.bool)
         self.lift_ok = torch.ones(W, dtype=torch.bool, device=tdev)
         self.disturb_ok = torch.ones(W, dtype=torch.bool, device=tdev)
         self.max_strain = zeros(W)

@@ -10,7 +10,7 @@ import pytest
 import torch
 import warp as wp
 
-from d3grasp.dexhand13 import NUM_PADS, OPPOSING_PADS, THUMB_PADS
+from d3grasp.dexhand13 import NUM_PADS, OPPOSING_PADS, PAD_NAMES, THUMB_PADS
 from d3grasp.envs.config import GraspEnvConfig
 from d3grasp.envs.mdp import terminations
 from d3grasp.envs.script import EpisodeScript
@@ -42,6 +42,8 @@ def _env(num_worlds: int, lift_on_touch: bool = True) -> SimpleNamespace:
         object_start=torch.zeros(W, 3),
         sensors=SimpleNamespace(strain_layout=None),
         s_grasp=torch.zeros(W, dtype=torch.bool),
+        pads_at_lift=torch.zeros(W, NUM_PADS, dtype=torch.bool),
+        pads_at_hold=torch.zeros(W, NUM_PADS, dtype=torch.bool),
         lift_ok=torch.ones(W, dtype=torch.bool),
         disturb_ok=torch.ones(W, dtype=torch.bool),
         max_rise=torch.zeros(W),
@@ -174,3 +176,27 @@ def test_pad_grasp_needs_the_thumb_and_an_opposing_pad() -> None:
     f[2, OPPOSING_PADS[0], 1] = 5.0  # finger alone
     f[3] = 0.1 * _grasp_forces()  # 0.2 N: below the contact force
     assert terminations.pad_grasp(f).tolist() == [True, False, False, False]
+
+
+def test_records_name_the_pads_touching_at_the_lift_start_and_end() -> None:
+    env = _env(1, lift_on_touch=False)
+    lift0, hold0 = env.phase_start["lift"], env.phase_start["hold"]
+    thumb, index_tip, middle_tip = THUMB_PADS[-1], OPPOSING_PADS[2], OPPOSING_PADS[5]
+
+    def object_pads(t: int) -> torch.Tensor:
+        f = torch.zeros(1, NUM_PADS, 3)
+        if t <= lift0:  # before and at the lift's start: thumb tip and index tip
+            f[0, thumb, 2] = -2.0
+            f[0, index_tip, 0] = 1.0
+            f[0, middle_tip, 2] = -0.2  # 0.2 N: below the contact force
+        else:  # after it the middle tip takes over and the thumb lets go
+            f[0, middle_tip, 1] = 0.5
+            f[0, index_tip, 2] = -0.4
+        return f
+
+    zero = lambda t: torch.zeros(1, 3)  # noqa: E731
+    (rec,) = _run(env, zero, zero, object_pads)
+    assert int(env.lift_start[0]) == lift0 < hold0
+    assert rec["pads_at_lift"] == [PAD_NAMES[index_tip], PAD_NAMES[thumb]]
+    assert rec["pads_at_hold"] == [PAD_NAMES[index_tip], PAD_NAMES[middle_tip]]
+    assert rec["s_grasp"]  # thumb and an opposing pad at the lift's start

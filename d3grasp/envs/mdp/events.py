@@ -238,6 +238,8 @@ def _reset_bookkeeping(env: GraspEnv, env_ids: torch.Tensor) -> None:
         env.residual_base.reset(env_ids)
     env.t_object_force[env_ids] = 0.0
     env.s_grasp[env_ids] = False
+    env.pads_at_lift[env_ids] = False
+    env.pads_at_hold[env_ids] = False
     env.lift_start[env_ids] = env.phase_start["lift"]
     env.touch_steps[env_ids] = 0
     env.max_rise[env_ids] = 0.0

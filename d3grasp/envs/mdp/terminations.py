@@ -6,7 +6,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from d3grasp.dexhand13 import OPPOSING_PADS, THUMB_PADS
+from d3grasp.dexhand13 import OPPOSING_PADS, PAD_NAMES, THUMB_PADS
 from d3grasp.envs.script import DISTURB_NAMES
 from d3grasp.envs.sensors import wp_view
 from d3grasp.vocabulary import GRASP_TYPES
@@ -43,13 +43,18 @@ def episode_ending(record: dict[str, Any]) -> str:
     return str(record.get("failure") or "not scored")
 
 
+def pads_touching(pad_force_object: torch.Tensor) -> torch.Tensor:
+    """(W, 11) bool: the pads with more than ``GRASP_CONTACT_FORCE`` of contact force from the object."""
+    return torch.linalg.norm(pad_force_object, dim=-1) > GRASP_CONTACT_FORCE
+
+
 def pad_grasp(pad_force_object: torch.Tensor) -> torch.Tensor:
     """(W,) bool: the pads show a grasp of the object: a thumb pad and an opposing finger pad each
     with more than ``GRASP_CONTACT_FORCE`` of contact force from the object (table contacts never
     count: ``pad_force_object`` holds the contacts with the object alone)."""
-    f = torch.linalg.norm(pad_force_object, dim=-1)
-    thumb = (f[:, list(THUMB_PADS)] > GRASP_CONTACT_FORCE).any(-1)
-    opposing = (f[:, list(OPPOSING_PADS)] > GRASP_CONTACT_FORCE).any(-1)
+    touching = pads_touching(pad_force_object)
+    thumb = touching[:, list(THUMB_PADS)].any(-1)
+    opposing = touching[:, list(OPPOSING_PADS)].any(-1)
     return thumb & opposing
 
 
@@ -97,6 +102,9 @@ def _update_metrics(env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor) -> No
         env.max_strain = torch.maximum(env.max_strain, sensors.soft_scalar(sensors.strain_buf.object_eps))
     # s_grasp: when the lift starts, a thumb pad and an opposing finger pad touch the object.
     env.s_grasp = torch.where(t == env.lift_start, pad_grasp(env.t_pad_force_object), env.s_grasp)
+    touching = pads_touching(env.t_pad_force_object)
+    env.pads_at_lift = torch.where((t == env.lift_start)[:, None], touching, env.pads_at_lift)
+    env.pads_at_hold = torch.where((t == script.phase_start["hold"])[:, None], touching, env.pads_at_hold)
     lifting = (t >= env.lift_start) & (t <= script.phase_start["hold"])
     env.max_rise = torch.where(lifting, torch.maximum(env.max_rise, rise), env.max_rise)
     # s_lift: raised by lift_height (within tolerance) through the whole hold phase.
@@ -151,6 +159,10 @@ def _terminations(env: GraspEnv, t, obj_pos, finite) -> tuple[torch.Tensor, torc
     return done, time_out & ~nonfinite
 
 
+def _pad_list(touching: torch.Tensor) -> list[str]:
+    return [PAD_NAMES[i] for i in torch.nonzero(touching).flatten().tolist()]
+
+
 def episode_records(env: GraspEnv, finished: torch.Tensor) -> list[dict[str, Any]]:
     """One record per finished world: object, grasp type, the three metrics, failure, strain, return."""
     records = []
@@ -179,6 +191,8 @@ def episode_records(env: GraspEnv, finished: torch.Tensor) -> list[dict[str, Any
                 "s_lift": s_lift,
                 "s_disturb": s_disturb,
                 "failure": failure,
+                "pads_at_lift": _pad_list(env.pads_at_lift[w]),
+                "pads_at_hold": _pad_list(env.pads_at_hold[w]),
                 "max_strain": float(env.max_strain[w]),
                 "max_rise": float(env.max_rise[w]),
                 "max_push_motion": float(env.max_push_motion[w]),
