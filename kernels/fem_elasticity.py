@@ -16,10 +16,14 @@ form, since ``d vec(F) / d x = m (x) I3``::
 
 (exact: J is linear in any one vertex, so the block has no d2J term). The damping term is Newton's as
 well: a dissipation ``V k / (2 dt) sum_ij (C_ij - C_prev_ij)^2`` of the right Cauchy-Green tensor
-``C = F^T F`` with its Gauss-Newton Hessian. On the 4 soft test objects Newton's kernel was ~85% of a
-soft control step (20 iterations x 10 substeps x 7 colours of launches); the closed form takes 112
-against 199 us a launch and the step 214 against 376 ms (docs/design.md, Where a soft step's time
-goes; compare with ``python -m d3grasp.bench env --kinds soft --set sim.closed_form_tets=false``).
+``C = F^T F`` with its Gauss-Newton Hessian, whose six per-entry sums collapse to
+``f_d = -2 V k F (dC/dt) m`` and ``H_d = (2 V k / dt) (|m|^2 F F^T + (F m)(F m)^T)``.
+On the 4 soft test objects Newton's kernel was ~85% of a soft control step (20 iterations x 10
+substeps x 7 colours of launches); the closed form takes 112 against 199 us a launch and the step
+214 against 376 ms; the damping's closed form took a launch from 0.55 to 0.47 of Newton's time (98
+against 210 us, one later session) and the soft benchmark from 19-22 to 21-23 env-steps/s
+(docs/design.md, Where a soft step's time goes; compare with ``python -m d3grasp.bench env --kinds
+soft --set sim.closed_form_tets=false``).
 
 Only the tets are handled: :func:`use_closed_form_tets` installs the kernel on a solver whose model has
 no membrane or bending elements (the soft objects are tet meshes whose surface triangles and edges
@@ -75,28 +79,21 @@ def tet_vertex_force_hessian(
     c2 = wp.cross(cols[0], cols[1])
     J = wp.dot(cols[0], c0)
     cof_m = c0 * m[0] + c1 * m[1] + c2 * m[2]
-    force = -volume * (mu * (F * m) + lmbd_nh * (J - alpha) * cof_m)
-    hessian = volume * (mu * wp.dot(m, m) * wp.identity(n=3, dtype=float) + lmbd_nh * wp.outer(cof_m, cof_m))
+    f_m = F * m
+    force = -volume * (mu * f_m + lmbd_nh * (J - alpha) * cof_m)
+    m2 = wp.dot(m, m)
+    eye = wp.identity(n=3, dtype=float)
+    hessian = volume * (mu * m2 * eye + lmbd_nh * wp.outer(cof_m, cof_m))
     if damping > 0.0:
         y0 = pos_prev[i0]
-        cols_prev = wp.transpose(
-            wp.matrix_from_cols(pos_prev[i1] - y0, pos_prev[i2] - y0, pos_prev[i3] - y0) * dm_inv
-        )
-        # C = F^T F; d C_ij / d x = m_i F_j + m_j F_i (F_j: column j); the sum runs over all nine
-        # entries, so each off-diagonal pair counts twice.
-        force_d = wp.vec3(0.0)
-        hessian_d = wp.mat33(0.0)
-        for i in range(3):
-            for j in range(i, 3):
-                weight = 1.0
-                if j != i:
-                    weight = 2.0
-                rate = (wp.dot(cols[i], cols[j]) - wp.dot(cols_prev[i], cols_prev[j])) / dt
-                grad = m[i] * cols[j] + m[j] * cols[i]
-                force_d += weight * rate * grad
-                hessian_d += weight * wp.outer(grad, grad)
-        force -= volume * damping * force_d
-        hessian += (volume * damping / dt) * hessian_d
+        F_prev = wp.matrix_from_cols(pos_prev[i1] - y0, pos_prev[i2] - y0, pos_prev[i3] - y0) * dm_inv
+        # Newton sums the six (i <= j) entries of the rate of C = F^T F, each with the gradient
+        # g_ij = m_i F_j + m_j F_i (F_j: column j of F) and weight 2 off the diagonal. Summed over
+        # all ordered pairs instead, that is 2 F (dC/dt) m for the force and
+        # 2 (|m|^2 F F^T + (F m)(F m)^T) for the Gauss-Newton Hessian.
+        rate = (wp.transpose(F) * F - wp.transpose(F_prev) * F_prev) / dt
+        force -= (2.0 * volume * damping) * (F * (rate * m))
+        hessian += (2.0 * volume * damping / dt) * (m2 * (F * wp.transpose(F)) + wp.outer(f_m, f_m))
     return force, hessian
 
 
