@@ -91,9 +91,9 @@ def tet_vertex_force_hessian(
         # g_ij = m_i F_j + m_j F_i (F_j: column j of F) and weight 2 off the diagonal. Summed over
         # all ordered pairs instead, that is 2 F (dC/dt) m for the force and
         # 2 (|m|^2 F F^T + (F m)(F m)^T) for the Gauss-Newton Hessian.
-        rate = (wp.transpose(F) * F - wp.transpose(F_prev) * F_prev) / dt
+        rate = (cols * F - wp.transpose(F_prev) * F_prev) / dt
         force -= (2.0 * volume * damping) * (F * (rate * m))
-        hessian += (2.0 * volume * damping / dt) * (m2 * (F * wp.transpose(F)) + wp.outer(f_m, f_m))
+        hessian += (2.0 * volume * damping / dt) * (m2 * (F * cols) + wp.outer(f_m, f_m))
     return force, hessian
 
 

@@ -66,6 +66,14 @@ def _set_palm_pose_kernel(
     body_q[palm_body[w]] = wp.transform(p, quat[w])
 
 
+def capture_graph(launches: Callable[[], None], device: wp.context.Device) -> wp.Graph:
+    """``launches`` captured as a Warp graph on ``device`` (run it once before: a capture records
+    launches, it does not load modules or size lazy buffers)."""
+    with wp.ScopedDevice(device), wp.ScopedCapture() as capture:
+        launches()
+    return capture.graph
+
+
 class Physics:
     """States, solver and collision pipeline of the multi-world model, and the per-world inputs the
     substeps read: the disturbance force on each object and the kinematic palm's path."""
@@ -168,11 +176,7 @@ class Physics:
         if self.sim.substeps % 2:
             raise ValueError("sim.substeps must be even: the captured step swaps two states")
         control_step()
-        self.graph = None
-        if self.sim.use_graph:
-            with wp.ScopedDevice(self.device), wp.ScopedCapture() as capture:
-                control_step()
-            self.graph = capture.graph
+        self.graph = capture_graph(control_step, self.device) if self.sim.use_graph else None
 
     def launch(self, control_step: Callable[[], None]) -> None:
         """One control step: the captured graph, or ``control_step`` itself when not captured."""

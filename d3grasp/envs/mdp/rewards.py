@@ -10,6 +10,7 @@ import torch
 import warp as wp
 
 from d3grasp.dexhand13 import NUM_FINGER_JOINTS, NUM_LINKS, NUM_PADS
+from d3grasp.envs.physics import capture_graph
 from d3grasp.envs.scene import OBJECT_SOFT
 from d3grasp.envs.sensors import wp_view
 from d3grasp.kernels import rewards as rk
@@ -67,9 +68,7 @@ def allocate(env: GraspEnv) -> None:
     env.reward_graph = None
     if env.cfg.sim.use_graph:
         rk.compute_rewards(env.rw_in, env.rw_out)  # loads the kernels' module before the capture
-        with wp.ScopedDevice(dev), wp.ScopedCapture() as capture:
-            rk.compute_rewards(env.rw_in, env.rw_out)
-        env.reward_graph = capture.graph
+        env.reward_graph = capture_graph(lambda: rk.compute_rewards(env.rw_in, env.rw_out), dev)
 
 
 def compute_rewards(env: GraspEnv, obj_pos, obj_lin, obj_ang, finite) -> torch.Tensor:

@@ -52,22 +52,26 @@ def pad_grasp(pad_force_object: torch.Tensor) -> torch.Tensor:
     """(W,) bool: the pads show a grasp of the object: a thumb pad and an opposing finger pad each
     with more than ``GRASP_CONTACT_FORCE`` of contact force from the object (table contacts never
     count: ``pad_force_object`` holds the contacts with the object alone)."""
-    touching = pads_touching(pad_force_object)
-    thumb = touching[:, list(THUMB_PADS)].any(-1)
-    opposing = touching[:, list(OPPOSING_PADS)].any(-1)
-    return thumb & opposing
+    return thumb_opposed(pads_touching(pad_force_object))
+
+
+def thumb_opposed(touching: torch.Tensor) -> torch.Tensor:
+    """(W,) bool: of the (W, 11) touching pads (:func:`pads_touching`), a thumb pad and an opposing
+    finger pad."""
+    return touching[:, list(THUMB_PADS)].any(-1) & touching[:, list(OPPOSING_PADS)].any(-1)
 
 
 def score(
     env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor, finite: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Update every world's success metrics after step ``t``; return (done, time_out)."""
-    _time_lift(env, t)
-    _update_metrics(env, t, obj_pos)
+    touching = pads_touching(env.t_pad_force_object)
+    _time_lift(env, t, touching)
+    _update_metrics(env, t, obj_pos, touching)
     return _terminations(env, t, obj_pos, finite)
 
 
-def _time_lift(env: GraspEnv, t: torch.Tensor) -> None:
+def _time_lift(env: GraspEnv, t: torch.Tensor, touching: torch.Tensor) -> None:
     """Touch-timed lift: a world whose pads have shown a grasp (or whose rule-closed fingers have
     all stopped on the object) for ``grasp_settle`` s in a row during the grasp phase starts its
     lift with the next step (else at the grasp phase's end)."""
@@ -75,7 +79,7 @@ def _time_lift(env: GraspEnv, t: torch.Tensor) -> None:
     if not ph.lift_on_touch:
         return
     waiting = (t >= env.phase_start["grasp"]) & (t < env.lift_start)
-    touch = pad_grasp(env.t_pad_force_object)
+    touch = thumb_opposed(touching)
     if env.residual_base is not None:
         # The rule runs inside the env (residual action modes): a hand closed as far as the object
         # lets it is ready too (a hook or a palm grasp need not touch with the thumb's pads).
@@ -93,7 +97,7 @@ def _fail(env: GraspEnv, worlds: torch.Tensor, reason: str) -> None:
             env.failure[w] = reason
 
 
-def _update_metrics(env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor) -> None:
+def _update_metrics(env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor, touching: torch.Tensor) -> None:
     script, ph = env.script, env.cfg.phases
     palm = wp_view(env.state_0.body_q)[env.i_palm, :3]
     rise = obj_pos[:, 2] - env.object_start[:, 2]
@@ -101,8 +105,7 @@ def _update_metrics(env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor) -> No
     if sensors.strain_layout is not None:
         env.max_strain = torch.maximum(env.max_strain, sensors.soft_scalar(sensors.strain_buf.object_eps))
     # s_grasp: when the lift starts, a thumb pad and an opposing finger pad touch the object.
-    env.s_grasp = torch.where(t == env.lift_start, pad_grasp(env.t_pad_force_object), env.s_grasp)
-    touching = pads_touching(env.t_pad_force_object)
+    env.s_grasp = torch.where(t == env.lift_start, thumb_opposed(touching), env.s_grasp)
     env.pads_at_lift = torch.where((t == env.lift_start)[:, None], touching, env.pads_at_lift)
     env.pads_at_hold = torch.where((t == script.phase_start["hold"])[:, None], touching, env.pads_at_hold)
     lifting = (t >= env.lift_start) & (t <= script.phase_start["hold"])
