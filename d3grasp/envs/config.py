@@ -237,6 +237,12 @@ class GraspEnvConfig:
     # loss jump from ~1e2 to ~5e5 and undid the critic. Real grasp steps stay within +-10. The
     # per-term logs are unclipped.
     reward_clip: float = 10.0
+    # Residual modes: -k * sum_j r_j^2 per step, r the offset from the rule's targets in [-1, 1] per
+    # joint (0: off). Every fine-tuning run over the planned grasps drifted below the rule that its
+    # zero action is (docs/design.md, Fine-tuning the residual): with no term that prefers the rule,
+    # PPO's noisy updates move the mean offset and the rule's equilibrium grip is lost. This term
+    # makes the rule the default that an offset has to pay for.
+    residual_penalty: float = 0.0
     tactile: TactileConfig = field(default_factory=TactileConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
 

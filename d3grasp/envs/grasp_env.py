@@ -338,6 +338,8 @@ class GraspEnv:
         extras: dict[str, Any] = {"time_outs": time_out, "log": {}}
         for k, name in enumerate(rk.TERM_NAMES):
             extras["log"][f"Reward/{name}"] = self.t_reward_terms[:, k].mean()
+        if self.cfg.residual_penalty:
+            extras["log"]["Reward/residual"] = rewards.residual_penalty(self).mean()
         finished = torch.nonzero(done).flatten()
         if len(finished):
             episodes = terminations.episode_records(self, finished)
@@ -378,6 +380,8 @@ def _check_config(cfg: GraspEnvConfig, num_envs: int) -> None:
         raise ValueError(f"residual_smoothing must be in (0, 1], got {cfg.residual_smoothing}")
     if not 0.0 <= cfg.residual_rate <= 1.0:
         raise ValueError(f"residual_rate must be in [0, 1], got {cfg.residual_rate}")
+    if cfg.residual_penalty < 0.0:
+        raise ValueError(f"residual_penalty must be >= 0, got {cfg.residual_penalty}")
     if cfg.residual_start not in PHASES:
         raise ValueError(f"unknown residual_start '{cfg.residual_start}'; phases: {list(PHASES)}")
     if cfg.grasp_source not in GRASP_SOURCES:

@@ -103,5 +103,15 @@ def compute_rewards(env: GraspEnv, obj_pos, obj_lin, obj_ang, finite) -> torch.T
     else:
         rk.compute_rewards(env.rw_in, env.rw_out)
     total = torch.nan_to_num(env.t_reward_total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
+    total += residual_penalty(env)
     clip = env.cfg.reward_clip
     return total.clamp(-clip, clip) if clip > 0 else total
+
+
+def residual_penalty(env: GraspEnv) -> torch.Tensor:
+    """(W,) ``-residual_penalty * sum_j r_j^2``: the cost of the policy's offset ``r`` (per joint, in
+    [-1, 1]) from the rule's targets in the residual action modes; zeros in the absolute mode."""
+    k = env.cfg.residual_penalty
+    if k == 0.0 or env.residual_base is None:
+        return torch.zeros(env.num_envs, device=env.torch_device)
+    return -k * env.residual.square().sum(-1)
