@@ -34,7 +34,7 @@ from d3grasp.controllers import Controller, make_controller  # noqa: E402
 from d3grasp.envs import close_env  # noqa: E402
 from d3grasp.envs.registry import get_task  # noqa: E402
 from d3grasp.policies import BASELINE, resolve_checkpoint  # noqa: E402
-from d3grasp.policies.checkpoint import observation_sizes  # noqa: E402
+from d3grasp.policies.checkpoint import interface_overrides, observation_sizes  # noqa: E402
 from d3grasp.seeding import seed_everything  # noqa: E402
 from d3grasp.viz.rollout import PictureSettings, RolloutPictures  # noqa: E402
 
@@ -98,6 +98,7 @@ def play(
     make = load_env_factory(env_factory) if isinstance(env_factory, str) else env_factory
     seed_everything(seed)
     overrides = {} if perception is None else {"perception": perception}  # custom factories need not know it
+    overrides |= interface_overrides(data)  # the checkpoint's action interface (none: nothing to pass)
     env = make(task, num_envs=num_envs, device=device, seed=seed, **overrides)
     result = PlayResult()
     try:

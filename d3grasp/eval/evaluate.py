@@ -138,6 +138,8 @@ class RunSpec:
     label: str
     task: str
     checkpoint: str
+    # The checkpoint's action interface (policies.checkpoint.interface_overrides); --set goes over it.
+    env_overrides: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -251,7 +253,7 @@ def _ablation_name(task: str) -> str:
 
 def run_specs(settings: EvalSettings) -> list[RunSpec]:
     """The controllers to evaluate, in table order; checks every checkpoint before any env is built."""
-    from d3grasp.policies.checkpoint import read_checkpoint
+    from d3grasp.policies.checkpoint import interface_overrides, read_checkpoint
 
     if settings.ablation:
         resolved = [checkpoint_task(spec) for spec in settings.ablation]
@@ -260,7 +262,7 @@ def run_specs(settings: EvalSettings) -> list[RunSpec]:
         for (task, path), name in zip(resolved, names, strict=True):
             if names.count(name) > 1 or name == BASELINE:  # two checkpoints of one task: tell them apart
                 name = f"{name} ({Path(path).parent.name}/{Path(path).name})"
-            specs.append(RunSpec(name, task, path))
+            specs.append(RunSpec(name, task, path, interface_overrides(read_checkpoint(path))))
         if len({s.label for s in specs}) != len(specs):
             raise ValueError(f"--ablation names one checkpoint twice: {list(settings.ablation)}")
     elif settings.checkpoint == BASELINE:
@@ -268,8 +270,8 @@ def run_specs(settings: EvalSettings) -> list[RunSpec]:
     else:
         assert settings.checkpoint is not None  # validate() ensured it
         path = resolve_checkpoint(settings.checkpoint, settings.task)  # "shipped": the package's policy
-        read_checkpoint(path)  # a missing or unreadable file fails before any env is built
-        specs = [RunSpec("policy", settings.task, path)]
+        data = read_checkpoint(path)  # a missing or unreadable file fails before any env is built
+        specs = [RunSpec("policy", settings.task, path, interface_overrides(data))]
     if settings.compare_baseline:
         specs.append(RunSpec(BASELINE, settings.task, BASELINE))
     return specs
@@ -319,7 +321,7 @@ def _eval_batch(
         objects=objects_cfg,
         grasp_types=grasp_types,
         perception=perception,
-        **settings.env_overrides,
+        **{**spec.env_overrides, **settings.env_overrides},
     )
     try:
         eps = _run_batch(env, spec, settings, on_episode)

@@ -71,6 +71,19 @@ def read_checkpoint(path: str | os.PathLike[str], map_location: str = "cpu") -> 
     return data
 
 
+def interface_overrides(data: dict[str, Any]) -> dict[str, Any]:
+    """The environment settings under which a checkpoint's actions mean what they meant in training
+    (its recorded ``policy_interface``, ``d3grasp.envs.config.POLICY_INTERFACE``) as ``make_env``
+    overrides; {} for a checkpoint without the record. Evaluation and play build the environment with
+    them, so a policy trained with another action mode runs as trained without flags."""
+    interface = (data.get("infos") or {}).get("policy_interface")
+    if not interface:
+        return {}
+    from d3grasp.envs.config import POLICY_INTERFACE_BEFORE
+
+    return {**POLICY_INTERFACE_BEFORE, **interface}
+
+
 def observation_sizes(obs: Any) -> dict[str, int]:
     """Width of every observation group of a TensorDict (what a checkpoint records and is checked by)."""
     # TensorDict iterates over its batch dimension, not its keys: .keys() is needed.

@@ -607,6 +607,13 @@ def test_checkpoint_records_and_checks_how_actions_become_targets(tmp_path: Path
         "action_smoothing": 0.7,
     }
     runner.load(str(ckpt), load_cfg={"actor": True})  # same settings: loads
+    # Evaluation builds its environments as the checkpoint records, --set going over it.
+    from d3grasp.eval.evaluate import EvalSettings, run_specs
+    from d3grasp.policies.checkpoint import interface_overrides
+
+    assert interface_overrides(read_checkpoint(ckpt)) == recorded
+    policy, baseline = run_specs(EvalSettings(checkpoint=str(ckpt), compare_baseline=True))
+    assert policy.env_overrides == recorded and baseline.env_overrides == {}
     env.cfg.residual_rate = 0.08
     refused = r"residual_rate=0\.05 \(environment: 0\.08\).*--set residual_rate=0\.05"
     with pytest.raises(CheckpointError, match=refused):
