@@ -728,7 +728,10 @@ def test_shipped_policy_fits_its_task_and_its_exports_agree() -> None:
     assert ckpt.stat().st_size < 10e6
     data = read_checkpoint(ckpt)
     assert data["infos"]["task"] == DEFAULT_TASK
-    env = make_env(DEFAULT_TASK, num_envs=1, seed=3, eval_mode=True)
+    from d3grasp.policies.checkpoint import interface_overrides
+
+    # Built as evaluation builds it: with the action interface the checkpoint records.
+    env = make_env(DEFAULT_TASK, num_envs=1, seed=3, eval_mode=True, **interface_overrides(data))
     load_actor(env, DEFAULT_TASK, ckpt, "cpu")  # CheckpointError if sizes or action mapping differ
     exported = ckpt.parent / "exported"
     exports = ExportTwins(
