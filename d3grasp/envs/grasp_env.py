@@ -339,7 +339,7 @@ class GraspEnv:
         for k, name in enumerate(rk.TERM_NAMES):
             extras["log"][f"Reward/{name}"] = self.t_reward_terms[:, k].mean()
         if self.cfg.residual_penalty:
-            extras["log"]["Reward/residual"] = rewards.residual_penalty(self).mean()
+            extras["log"]["Reward/residual"] = self.t_residual_term.mean()
         finished = torch.nonzero(done).flatten()
         if len(finished):
             episodes = terminations.episode_records(self, finished)

@@ -214,8 +214,9 @@ def _task_from_run_folder(checkpoint: Path) -> str | None:
     return DEFAULT_TASK  # d3grasp-train without --task trains the default task
 
 
-def checkpoint_task(spec: str) -> tuple[str, str]:
-    """``(task, checkpoint path)`` of an ablation entry ``"PATH"`` or ``"TASK=PATH"``.
+def checkpoint_task(spec: str) -> tuple[str, str, dict[str, Any]]:
+    """``(task, checkpoint path, checkpoint)`` of an ablation entry ``"PATH"`` or ``"TASK=PATH"``
+    (the checkpoint as ``read_checkpoint`` loads it, read once).
 
     The task a checkpoint was trained on is read from the checkpoint (``d3grasp-train`` records it),
     else from its run folder's ``params/command.txt``. A given task must agree with the recorded one;
@@ -230,7 +231,8 @@ def checkpoint_task(spec: str) -> tuple[str, str]:
     path = rest if given is not None else spec
     if given is not None:
         get_task(given)
-    infos = read_checkpoint(path).get("infos") or {}
+    data = read_checkpoint(path)
+    infos = data.get("infos") or {}
     recorded = infos.get("task") or _task_from_run_folder(Path(path))
     if recorded is not None:
         get_task(recorded)
@@ -242,7 +244,7 @@ def checkpoint_task(spec: str) -> tuple[str, str]:
             f"cannot tell which task checkpoint {path} was trained on (no task in the checkpoint, no "
             f"params/command.txt next to it): give it as TASK={path}"
         )
-    return task, path
+    return task, path, data
 
 
 def _ablation_name(task: str) -> str:
@@ -257,12 +259,12 @@ def run_specs(settings: EvalSettings) -> list[RunSpec]:
 
     if settings.ablation:
         resolved = [checkpoint_task(spec) for spec in settings.ablation]
-        names = [_ablation_name(task) for task, _ in resolved]
+        names = [_ablation_name(task) for task, _, _ in resolved]
         specs = []
-        for (task, path), name in zip(resolved, names, strict=True):
+        for (task, path, data), name in zip(resolved, names, strict=True):
             if names.count(name) > 1 or name == BASELINE:  # two checkpoints of one task: tell them apart
                 name = f"{name} ({Path(path).parent.name}/{Path(path).name})"
-            specs.append(RunSpec(name, task, path, interface_overrides(read_checkpoint(path))))
+            specs.append(RunSpec(name, task, path, interface_overrides(data)))
         if len({s.label for s in specs}) != len(specs):
             raise ValueError(f"--ablation names one checkpoint twice: {list(settings.ablation)}")
     elif settings.checkpoint == BASELINE:

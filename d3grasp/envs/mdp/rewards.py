@@ -63,6 +63,7 @@ def allocate(env: GraspEnv) -> None:
     env.t_reward_terms = wp_view(env.rw_out.terms)
     env.t_reward_total = wp_view(env.rw_out.total)
     env.t_rw = {name: wp_view(getattr(env.rw_in, name)) for name in _STEP_INPUTS}
+    env.t_residual_term = torch.zeros(W, device=env.torch_device)  # residual_penalty's, when on
     # The five reward launches replayed as one graph (the buffers above never move): a launch from
     # Python costs ~0.15 ms on the CPU, the kernels at a few worlds microseconds.
     env.reward_graph = None
@@ -103,7 +104,9 @@ def compute_rewards(env: GraspEnv, obj_pos, obj_lin, obj_ang, finite) -> torch.T
     else:
         rk.compute_rewards(env.rw_in, env.rw_out)
     total = torch.nan_to_num(env.t_reward_total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
-    total += residual_penalty(env)
+    if env.cfg.residual_penalty:
+        env.t_residual_term[:] = residual_penalty(env)  # kept for the step's log (Reward/residual)
+        total += env.t_residual_term
     clip = env.cfg.reward_clip
     return total.clamp(-clip, clip) if clip > 0 else total
 
