@@ -7,9 +7,11 @@ import pytest
 import torch
 import warp as wp
 from d3grasp.kernels import strain as strain_k
+from d3grasp.kernels.rewards import TERM_NAMES
 
 from d3grasp.envs import make_env
 from d3grasp.envs.baseline import RuleBasedController
+from d3grasp.envs.mdp import rewards
 from d3grasp.envs.registry import UnknownTaskError
 from d3grasp.vocabulary import PHASES
 
@@ -297,3 +299,31 @@ def test_held_object_contact_forces_balance_its_weight():
 
 def test_warp_runs_on_cpu():
     assert wp.get_device("cpu").is_cpu
+
+
+def test_contact_reward_counts_the_pads_touch_of_the_object_only():
+    """r_contact (paper: contact "between the fingertips and the object surface") from hand-set pad
+    forces: pads pressing the table earn nothing; pads on the object earn k_f f, the excess over f_m
+    costs k_p per newton."""
+    env = _box_env()
+    rcfg = env.cfg.rewards
+    obj_pos, _, obj_lin, obj_ang = env.object_state()
+    finite = torch.ones(1, dtype=torch.bool)
+    table = torch.zeros(1, 11, 3)
+    table[0, [0, 3, 6], 2] = 15.0  # three fingertip pads pressing the table at 15 N each
+    on_object = torch.zeros(1, 11, 3)
+    on_object[0, 9, 2] = 4.0  # a thumb pad and an index pad on the object
+    on_object[0, 2, 0] = rcfg.max_force + 5.0  # 5 N over the permitted maximum
+    contact = TERM_NAMES.index("contact")
+    for object_force, expected in (
+        (torch.zeros(1, 11, 3), 0.0),
+        (on_object, rcfg.contact_gain * (4.0 + rcfg.max_force + 5.0) - rcfg.contact_penalty * 5.0),
+    ):
+        wp.to_torch(env.sensors.pad_force_true)[:] = table + object_force
+        wp.to_torch(env.sensors.pad_contact_true)[:] = (
+            torch.linalg.norm(table + object_force, dim=-1) > 0
+        ).float()
+        wp.to_torch(env.sensors.pad_force_object)[:] = object_force
+        wp.to_torch(env.sensors.pad_contact_object)[:] = (torch.linalg.norm(object_force, dim=-1) > 0).float()
+        rewards.compute_rewards(env, obj_pos, obj_lin, obj_ang, finite)
+        assert float(env.t_reward_terms[0, contact]) == pytest.approx(expected, rel=1e-5, abs=1e-6)
