@@ -56,8 +56,8 @@ class Sensors:
             noise_std=rnd.tactile_noise_std if rnd.enabled else 0.0,
             contact_threshold=cfg.tactile.contact_threshold,
         )
-        # The truth behind the readings (no saturation, no noise): privileged observation, rewards
-        # and the success metrics.
+        # The truth behind the readings (no saturation, no noise), every contact: the privileged
+        # observation and the blow-up check.
         self.true_tactile_cfg = tac_k.TactileConfig(
             saturation=(0.0, 0.0, 0.0), noise_std=0.0, contact_threshold=cfg.tactile.contact_threshold
         )
@@ -67,7 +67,8 @@ class Sensors:
         self.pad_force_true = wp.zeros((W, NUM_PADS), dtype=wp.vec3, device=device)
         self.pad_contact_true = wp.zeros((W, NUM_PADS), dtype=float, device=device)
         # The pads' touch of the object alone (contacts with the table or the hand left out), true
-        # values in the pad frames: what s_grasp, the closing rule and the lift trigger read.
+        # values in the pad frames: what s_grasp, the closing rule, the lift trigger and the contact
+        # and symmetry rewards read.
         self.pad_object_world_force = wp.zeros((W, NUM_PADS), dtype=wp.vec3, device=device)
         self.pad_force_object = wp.zeros((W, NUM_PADS), dtype=wp.vec3, device=device)
         self.pad_contact_object = wp.zeros((W, NUM_PADS), dtype=float, device=device)

@@ -9,6 +9,7 @@ import warp as wp
 from d3grasp.kernels import strain as strain_k
 from d3grasp.kernels.rewards import TERM_NAMES
 
+from d3grasp.dexhand13 import NUM_PADS
 from d3grasp.envs import make_env
 from d3grasp.envs.baseline import RuleBasedController
 from d3grasp.envs.mdp import rewards
@@ -309,21 +310,22 @@ def test_contact_reward_counts_the_pads_touch_of_the_object_only():
     rcfg = env.cfg.rewards
     obj_pos, _, obj_lin, obj_ang = env.object_state()
     finite = torch.ones(1, dtype=torch.bool)
-    table = torch.zeros(1, 11, 3)
+    table = torch.zeros(1, NUM_PADS, 3)
     table[0, [0, 3, 6], 2] = 15.0  # three fingertip pads pressing the table at 15 N each
-    on_object = torch.zeros(1, 11, 3)
-    on_object[0, 9, 2] = 4.0  # a thumb pad and an index pad on the object
-    on_object[0, 2, 0] = rcfg.max_force + 5.0  # 5 N over the permitted maximum
+    on_object = torch.zeros(1, NUM_PADS, 3)
+    on_object[0, 9, 2] = 4.0  # a thumb pad at 4 N
+    on_object[0, 2, 0] = rcfg.max_force + 5.0  # an index pad 5 N over the permitted maximum
     contact = TERM_NAMES.index("contact")
+
+    def set_pads(force_buf: wp.array, contact_buf: wp.array, force: torch.Tensor) -> None:
+        wp.to_torch(force_buf)[:] = force
+        wp.to_torch(contact_buf)[:] = (torch.linalg.norm(force, dim=-1) > 0).float()
+
     for object_force, expected in (
-        (torch.zeros(1, 11, 3), 0.0),
+        (torch.zeros(1, NUM_PADS, 3), 0.0),
         (on_object, rcfg.contact_gain * (4.0 + rcfg.max_force + 5.0) - rcfg.contact_penalty * 5.0),
     ):
-        wp.to_torch(env.sensors.pad_force_true)[:] = table + object_force
-        wp.to_torch(env.sensors.pad_contact_true)[:] = (
-            torch.linalg.norm(table + object_force, dim=-1) > 0
-        ).float()
-        wp.to_torch(env.sensors.pad_force_object)[:] = object_force
-        wp.to_torch(env.sensors.pad_contact_object)[:] = (torch.linalg.norm(object_force, dim=-1) > 0).float()
+        set_pads(env.sensors.pad_force_true, env.sensors.pad_contact_true, table + object_force)
+        set_pads(env.sensors.pad_force_object, env.sensors.pad_contact_object, object_force)
         rewards.compute_rewards(env, obj_pos, obj_lin, obj_ang, finite)
         assert float(env.t_reward_terms[0, contact]) == pytest.approx(expected, rel=1e-5, abs=1e-6)
