@@ -178,7 +178,7 @@ def test_residual_is_low_pass_filtered():
     """A constant residual action a reaches the joints as the geometric series a (1 - (1 - b)^k), on top
     of the rule's target and through the outer target smoothing (recomputed here step by step)."""
     b = 0.25
-    env = _box_env(action_mode="residual", residual_rate=0.0, residual_smoothing=b)
+    env = _box_env(action_mode="residual", residual_rate=0.0, residual_smoothing=b, residual_start="approach")
     action = torch.linspace(-1.0, 1.0, 16)[None]
     rest = env.residual_base.target.clone()  # the rule holds its rest pose through the approach
     a_s, target = env.cfg.action_smoothing, env.finger_target.clone()
@@ -198,7 +198,7 @@ def test_synergy_action_squeezes_each_fingers_flexion_joints():
     """Synergy mode: 4 actions, action f offsets finger f's three flexion joints (4f+1..4f+3) equally and
     no abduction joint; the offset is filtered like the residual mode's."""
     b = 0.25
-    env = _box_env(action_mode="synergy", residual_rate=0.0, residual_smoothing=b)
+    env = _box_env(action_mode="synergy", residual_rate=0.0, residual_smoothing=b, residual_start="approach")
     assert env.num_actions == 4
     action = torch.tensor([[0.5, -1.0, 0.2, 1.0]])
     expected = torch.zeros(1, 16)
@@ -215,7 +215,7 @@ def test_synergy_action_squeezes_each_fingers_flexion_joints():
 def test_residual_integrator_holds_and_saturates():
     """residual_rate > 0: the residual is the clipped running sum of rate * action (zero holds it)."""
     rate = 0.3
-    env = _box_env(action_mode="synergy", residual_rate=rate)
+    env = _box_env(action_mode="synergy", residual_rate=rate, residual_start="approach")
     expected = np.zeros(4)
     for action in ([1.0, -0.5, 0.2, 0.0], [0.0] * 4) + ([1.0, -1.0, 0.5, -0.1],) * 3:
         env.step(torch.tensor([action]))

@@ -171,9 +171,12 @@ def _importable_standin(monkeypatch: pytest.MonkeyPatch) -> None:
 def _train_argv(
     tmp: Path, task: str = DEFAULT_TASK, iters: int = 2, extra: tuple[str, ...] = ()
 ) -> list[str]:
+    # No critic-only warm-up (the default's 20 iterations): these runs are a few iterations long and
+    # check that the actor learns.
     return [
         "--task", task, "--num_envs", "2", "--max_iterations", str(iters), "--num_steps_per_env", "4",
-        "--log_root", str(tmp / "logs"), "--env_factory", ENV_FACTORY, "--torch_threads", "1", *extra,
+        "--log_root", str(tmp / "logs"), "--env_factory", ENV_FACTORY, "--torch_threads", "1",
+        "--agent", "critic_warmup_iterations=0", *extra,
     ]  # fmt: skip
 
 
@@ -591,7 +594,9 @@ def test_checkpoint_records_and_checks_how_actions_become_targets(tmp_path: Path
     recorded values can tell a checkpoint of another meaning: it is refused, with the --set that fits."""
     from d3grasp.envs import make_env
 
-    env = make_env(DEFAULT_TASK, num_envs=1, seed=0, residual_rate=0.05, action_smoothing=0.7)
+    env = make_env(
+        DEFAULT_TASK, num_envs=1, seed=0, residual_rate=0.05, action_smoothing=0.7, residual_start="approach"
+    )
     cfg = make_train_cfg(DEFAULT_TASK)
     cfg["algorithm"]["num_mini_batches"] = 1
     runner = D3GraspRunner(env, cfg, log_dir=None, device="cpu", task_name=DEFAULT_TASK)
@@ -600,7 +605,7 @@ def test_checkpoint_records_and_checks_how_actions_become_targets(tmp_path: Path
     recorded = read_checkpoint(ckpt)["infos"]["policy_interface"]
     assert recorded == {
         "action_mode": "synergy",
-        "residual_scale": 0.4,
+        "residual_scale": 0.1,
         "residual_smoothing": 0.2,
         "residual_rate": 0.05,
         "residual_start": "approach",
