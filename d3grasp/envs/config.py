@@ -46,6 +46,10 @@ class SimConfig:
     # (planned grasps). The cost is ~4x a soft step; the evaluation batches rigid and soft objects
     # apart, so rigid worlds keep ``iterations``.
     soft_iterations: int = 20
+    # Chebyshev acceleration of the soft nodes' sweeps (d3grasp.kernels.chebyshev; 0 = plain sweeps).
+    # Off: with rho 0.9 neither 10 nor 14 accelerated iterations kept 20 plain ones' holds (docs/design.md,
+    # Where a soft step's time goes).
+    soft_chebyshev_rho: float = 0.0
     kinematic_palm: bool = True  # palm prescribed each substep instead of the driven 6-DoF root chain
     collide_every: int = 1  # substeps per collision detection; VBD re-evaluates contacts each iteration
     # Rigid contact capacity per world, pooled over all worlds: a world uses 20-70 contacts, a many-hull

@@ -16,6 +16,7 @@ import warp as wp
 
 from d3grasp.envs.config import SimConfig
 from d3grasp.envs.scene import SceneLayout
+from d3grasp.kernels.chebyshev import use_chebyshev
 from d3grasp.kernels.fem_elasticity import use_closed_form_tets
 
 
@@ -106,6 +107,7 @@ class Physics:
             )
             if sim.closed_form_tets:
                 use_closed_form_tets(self.solver)
+            use_chebyshev(self.solver, sim.soft_chebyshev_rho)
             if not device.is_cuda:
                 # The body-particle contact kernel runs this many workers per colour and iteration,
                 # each striding over the active contacts (Newton sizes it to fill a GPU: one per
