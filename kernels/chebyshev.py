@@ -68,9 +68,9 @@ def use_chebyshev(solver, rho: float) -> None:
 
     Wraps the solver's step (to restart the recurrence each substep) and its particle iteration (to
     record the substep's start and extrapolate after each sweep)."""
+    weights = chebyshev_weights(rho, solver.iterations)  # first: a bad rho is refused on any model
     if rho == 0.0 or solver.model.particle_count == 0:
         return
-    weights = chebyshev_weights(rho, solver.iterations)
     n, device = solver.model.particle_count, solver.device
     prev1 = wp.zeros(n, dtype=wp.vec3, device=device)
     prev2 = wp.zeros(n, dtype=wp.vec3, device=device)
