@@ -11,7 +11,10 @@ state that a fork would copy half-made).
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Sequence
+import signal
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 __all__ = ["default_workers", "run_units"]
@@ -25,15 +28,54 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def _exit_with_parent() -> None:
+    """Block until the parent process has gone, then end this one at once.
+
+    A worker that outlives its parent (killed, or stopped by a signal no handler saw) would finish
+    its unit for nobody and then wait on the task queue for ever, holding a core: the queue's
+    write end lives in the workers too, so they never see it close.
+    """
+    import multiprocessing as mp
+
+    parent = mp.parent_process()
+    if parent is not None:
+        parent.join()  # returns when the parent's sentinel closes, i.e. the parent has exited
+        os._exit(1)
+
+
 def _init_worker() -> None:
     # One torch thread per process: the processes already fill the cores. Warp quiet: one banner per
     # process would bury the parent's progress bar.
+    import threading
+
     import torch
 
     from d3grasp.console import quiet_warp
 
+    threading.Thread(target=_exit_with_parent, name="exit-with-parent", daemon=True).start()
     torch.set_num_threads(1)
     quiet_warp()
+
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM raises KeyboardInterrupt here, as Ctrl-C does, so the caller's clean-up runs.
+
+    Python's default for SIGTERM ends the process without unwinding, so the pool's workers were
+    left behind. Signal handlers can only be set from the main thread; elsewhere this does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def run_units(
@@ -55,9 +97,22 @@ def run_units(
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    with ProcessPoolExecutor(
-        max_workers=min(workers, len(units)), mp_context=mp.get_context("spawn"), initializer=_init_worker
-    ) as pool:
+    with (
+        _sigterm_as_interrupt(),
+        ProcessPoolExecutor(
+            max_workers=min(workers, len(units)), mp_context=mp.get_context("spawn"), initializer=_init_worker
+        ) as pool,
+    ):
         futures = {pool.submit(fn, *args): k for k, args in enumerate(units)}
-        for fut in as_completed(futures):
-            on_result(futures[fut], fut.result())
+        try:
+            for fut in as_completed(futures):
+                on_result(futures[fut], fut.result())
+        except BaseException:
+            # Ctrl-C, SIGTERM or a failed unit: stop the rest now. Leaving the block would otherwise
+            # wait for every running unit to finish (minutes of simulation). Python 3.11's executor
+            # has no public way to stop its workers (3.14 adds terminate_workers()).
+            procs = list((getattr(pool, "_processes", None) or {}).values())  # shutdown() drops the map
+            pool.shutdown(wait=False, cancel_futures=True)
+            for proc in procs:
+                proc.terminate()
+            raise

@@ -91,7 +91,8 @@ def run_command(prog: str, body: Callable[[], int | None], *, one_line: bool = F
 
     A bad task, a checkpoint that does not fit, bad input or a missing file print
     ``<prog>: error: <reason>`` and exit 2 (``one_line`` folds a multi-line reason onto one line);
-    Ctrl-C prints ``<prog>: aborted`` and exits 130; ``D3GRASP_DEBUG=1`` re-raises for a traceback.
+    Ctrl-C prints ``<prog>: aborted`` and exits 130 (SIGTERM during a multi-process run: ``aborted by
+    SIGTERM``, its workers stopped); ``D3GRASP_DEBUG=1`` re-raises for a traceback.
     """
     from d3grasp.envs.registry import UnknownTaskError
     from d3grasp.policies.checkpoint import CheckpointError
@@ -104,7 +105,7 @@ def run_command(prog: str, body: Callable[[], int | None], *, one_line: bool = F
         reason = " ".join(str(exc).split()) if one_line else str(exc)
         print(f"{prog}: error: {reason}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"{prog}: aborted", file=sys.stderr)
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM while workers run (d3grasp.parallel says which)
+        print(f"{prog}: aborted" + (f" by {exc}" if str(exc) else ""), file=sys.stderr)
         return 130
     return 0 if code is None else code
