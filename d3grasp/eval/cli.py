@@ -6,9 +6,11 @@
 
 Writes ``results.json`` (settings and every episode), ``summary.csv``, ``table.md`` and ``plot.png``
 to ``--out`` (default ``eval_out/``). ``--ablation`` evaluates several checkpoints (each on the task
-it was trained on, or ``TASK=PATH``) into the paper's ablation table. ``--set KEY=VALUE``
-overrides an environment config field (``phases.disturb_per_direction=0.1``); it changes what is
-measured, so it is meant for debugging and quick checks, and is recorded in results.json.
+it was trained on, or ``TASK=PATH``) into the paper's ablation table. A stopped run continues with
+``--resume`` (the same command and ``--out``): finished batches are kept in ``OUT/.batches/``.
+``--set KEY=VALUE`` overrides an environment config field (``phases.disturb_per_direction=0.1``); it
+changes what is measured, so it is meant for debugging and quick checks, and is recorded in
+results.json.
 """
 
 from __future__ import annotations
@@ -87,6 +89,12 @@ def make_parser() -> argparse.ArgumentParser:
         help="object pose for the grasp planner: simulator truth (oracle), the RGB-D camera, or both side "
         "by side (adds a localisation-error table)",
     )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="reuse the batches a stopped run into the same --out finished with the same settings and "
+        "inputs (kept in OUT/.batches/ until the outputs are written); without it they are discarded",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
         "--verbose", action="store_true", help="also what Warp and rsl-rl report (module loads, models)"
@@ -100,6 +108,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from d3grasp.cli.args import resolve_torch_threads, run_command
     from d3grasp.eval.evaluate import evaluate, write_outputs
+    from d3grasp.eval.resume import BatchStore
 
     torch.set_num_threads(resolve_torch_threads(args.torch_threads))
     from d3grasp.console import set_verbosity
@@ -125,8 +134,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         from d3grasp.parallel import default_workers
 
         workers = args.workers or (default_workers() if args.device == "cpu" else 1)
-        result = evaluate(settings, progress=not args.no_progress, workers=workers)
+        store = BatchStore(args.out)  # each finished batch is kept until the outputs are written
+        if not args.resume:
+            store.clear()
+        result = evaluate(settings, progress=not args.no_progress, workers=workers, store=store)
         paths = write_outputs(result, args.out)
+        store.clear()
         print(paths["table"].read_text())
         print(f"[d3grasp-eval] wrote {', '.join(str(p) for p in paths.values())} in {result.wall_s:.1f} s")
 

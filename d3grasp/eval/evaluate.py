@@ -43,6 +43,8 @@ from d3grasp.eval.metrics import (
     outcomes_markdown,
     table_markdown,
 )
+from d3grasp.eval.resume import BatchStore, batch_key
+from d3grasp.files import atomic_write_text
 from d3grasp.policies import BASELINE, resolve_checkpoint
 from d3grasp.vision.perception import localisation_markdown, localisation_summary
 
@@ -359,12 +361,15 @@ def evaluate(
     log: Callable[[str], None] = print,
     env_factory: Callable[..., Any] | None = None,
     workers: int = 1,
+    store: BatchStore | None = None,
 ) -> EvalResult:
     """Run the evaluation; ``CheckpointError`` / ``FileNotFoundError`` / ``ValueError`` on bad input.
 
     The batches (controller x ``num_envs`` objects x repeat) run in ``workers`` processes
     (d3grasp.parallel); a batch's episodes depend only on its objects and seed, so any number of
-    workers gives the same results. A custom ``env_factory`` runs in this process.
+    workers gives the same results. A custom ``env_factory`` runs in this process. With a ``store``
+    each finished batch is saved to it, and a batch it already holds for the same inputs is not run
+    again (a stopped evaluation resumes).
     """
     import time
 
@@ -389,19 +394,31 @@ def evaluate(
     grasp_types = tuple(GRASP_TYPES) if settings.grasp_types == "all" else (settings.grasp_types,)
     K, W = settings.episodes_per_object, settings.num_envs
     kinds = {e.id: e.kind for e in entries}
-    batches = plan_batches(jobs, ids, kinds, W, K)
+    all_batches = plan_batches(jobs, ids, kinds, W, K)
+    manifest_arg = str(manifest) if manifest is not None else None
+    runs: dict[str, list[dict[str, Any]]] = {spec.label: [] for spec in specs}
+    keys = [batch_key(settings, *b, manifest_arg, grasp_types) for b in all_batches] if store else []
+    batches, batch_keys = [], []
+    for k, b in enumerate(all_batches):
+        stored = store.load(keys[k]) if store else None
+        if stored is None:
+            batches.append(b)
+            batch_keys.append(keys[k] if store else None)
+        else:
+            runs[b[0].label].extend(stored)
     if env_factory is not None:
         workers = 1
     workers = max(1, min(workers, len(batches)))
     total = len(ids) * K * len(specs)
     tasks = ", ".join(dict.fromkeys(spec.task for spec in specs))
+    reused = len(all_batches) - len(batches)
     log(
         f"[d3grasp-eval] {len(ids)} objects x {K} episodes x {len(specs)} controller(s) = {total} "
-        f"episodes on {tasks}, {W} worlds per batch, {len(batches)} batches on {workers} process(es)"
+        f"episodes on {tasks}, {W} worlds per batch, {len(all_batches)} batches on {workers} process(es)"
+        + (f", {reused} of them finished by an earlier run and reused" if reused else "")
     )
-    manifest_arg = str(manifest) if manifest is not None else None
-    runs: dict[str, list[dict[str, Any]]] = {spec.label: [] for spec in specs}
-    with tqdm(total=total, unit="ep", disable=not progress, dynamic_ncols=True) as bar:
+    done_eps = sum(len(eps) for eps in runs.values())
+    with tqdm(total=total, initial=done_eps, unit="ep", disable=not progress, dynamic_ncols=True) as bar:
         if workers == 1:  # in this process: the bar moves per episode
 
             def one_episode() -> None:
@@ -413,6 +430,8 @@ def evaluate(
 
         def done(k: int, eps: list[dict[str, Any]]) -> None:
             runs[batches[k][0].label].extend(eps)
+            if store is not None:
+                store.save(batch_keys[k], eps)
             if workers > 1:
                 bar.update(len(eps))
 
@@ -520,7 +539,7 @@ def write_outputs(
     paths = {"results": out / "results.json", "summary": out / "summary.csv", "table": out / "table.md"}
     # Strict JSON: a non-finite number (the max strain of an episode whose state blew up) is null.
     doc = json.dumps(_finite_or_null(result.to_json()), indent=1, sort_keys=True, allow_nan=False)
-    paths["results"].write_text(doc + "\n")
+    atomic_write_text(paths["results"], doc + "\n")
 
     with paths["summary"].open("w", newline="") as f:
         fields = ["run", "column", "metric", "successes", "trials", "rate", "ci_low", "ci_high"]

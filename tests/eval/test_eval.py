@@ -334,3 +334,78 @@ def test_batches_hold_one_kind_costliest_first() -> None:
     want = [(spec, "oracle", c, r) for c in chunks for spec in (policy, base) for r in (0, 1)]
     assert sorted(batches, key=str) == sorted(want, key=str)
     assert [b[2] for b in batches] == [c for c in chunks for _ in range(4)]
+
+
+def test_a_stopped_run_resumes_where_it_was(
+    tmp_path: Path, manifest: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Stopped after its first batch (Ctrl-C), the same command with --resume runs only the other
+    one, and its results.json is byte for byte that of a run never stopped."""
+    import d3grasp.eval.evaluate as evaluate_module
+    from d3grasp.eval.resume import BATCH_DIR_NAME
+
+    real_batch = evaluate_module._eval_batch
+    ran: list[tuple[str, ...]] = []
+
+    def counted(*args: Any, **kwargs: Any) -> list[dict[str, Any]]:
+        ran.append(tuple(args[2]))  # the batch's object ids
+        return real_batch(*args, **kwargs)
+
+    def stop_at_second(*args: Any, **kwargs: Any) -> list[dict[str, Any]]:
+        if ran:
+            raise KeyboardInterrupt
+        return counted(*args, **kwargs)
+
+    argv = ["--checkpoint", "baseline", "--objects", str(manifest), "--grasp-types", "top", "--seed", "3"]
+    one_per_batch = [*QUICK, "--num_envs", "1", "--workers", "1"]  # two batches of one object each
+    whole, stopped = tmp_path / "whole", tmp_path / "stopped"
+    assert main([*argv, "--out", str(whole), *one_per_batch]) == 0
+    assert not (whole / BATCH_DIR_NAME).exists()  # removed once the outputs are written
+
+    monkeypatch.setattr(evaluate_module, "_eval_batch", stop_at_second)
+    assert main([*argv, "--out", str(stopped), *one_per_batch]) == 130
+    assert "aborted" in capsys.readouterr().err
+    assert not (stopped / "results.json").exists() and len(list((stopped / BATCH_DIR_NAME).iterdir())) == 1
+
+    ran.clear()
+    monkeypatch.setattr(evaluate_module, "_eval_batch", counted)
+    assert main([*argv, "--out", str(stopped), *one_per_batch, "--resume"]) == 0
+    assert ran == [(OBJECTS[1],)]  # the first object's batch was not run again
+    assert "1 of them finished by an earlier run and reused" in capsys.readouterr().out
+    assert (stopped / "results.json").read_bytes() == (whole / "results.json").read_bytes()
+    assert not (stopped / BATCH_DIR_NAME).exists()
+
+
+def test_stored_batches_are_reused_only_for_the_same_inputs(tmp_path: Path, manifest: Path) -> None:
+    from d3grasp.eval.evaluate import EvalSettings, RunSpec
+    from d3grasp.eval.resume import BATCH_DIR_NAME, BatchStore, batch_key
+
+    settings = EvalSettings(objects=str(manifest), split="all")
+    spec = RunSpec("baseline", DEFAULT_TASK, "baseline")
+    key = batch_key(settings, spec, "oracle", OBJECTS, 0, str(manifest), ("top",))
+    store = BatchStore(tmp_path)
+    episodes = [{"object": OBJECTS[0], "s_lift": True, "max_strain": float("nan"), "pads_at_lift": ["a"]}]
+    store.save(key, episodes)
+    got = store.load(key)
+    assert got is not None and got[0]["pads_at_lift"] == ["a"]
+    assert got[0]["max_strain"] != got[0]["max_strain"]  # NaN read back as NaN
+    others = [
+        batch_key(replace(settings, seed=1), spec, "oracle", OBJECTS, 0, str(manifest), ("top",)),
+        batch_key(settings, spec, "oracle", OBJECTS, 1, str(manifest), ("top",)),  # another repeat
+        batch_key(settings, spec, "camera", OBJECTS, 0, str(manifest), ("top",)),
+        batch_key(settings, spec, "oracle", OBJECTS[:1], 0, str(manifest), ("top",)),
+        batch_key(settings, spec, "oracle", OBJECTS, 0, str(manifest), ("pinch",)),
+    ]
+    assert all(store.load(k) is None for k in others)
+    # The manifest's bytes are part of the key: an edited manifest runs the batch again.
+    manifest_text = manifest.read_text()
+    try:
+        manifest.write_text(manifest_text + "\n")
+        assert store.load(batch_key(settings, spec, "oracle", OBJECTS, 0, str(manifest), ("top",))) is None
+    finally:
+        manifest.write_text(manifest_text)
+    (path,) = (tmp_path / BATCH_DIR_NAME).iterdir()
+    path.write_text("{not json")  # a torn or foreign file is not reused
+    assert store.load(key) is None
+    store.clear()
+    assert not (tmp_path / BATCH_DIR_NAME).exists()

@@ -1,0 +1,113 @@
+"""Finished evaluation batches kept on disk, so that a stopped ``d3grasp-eval`` resumes where it was.
+
+Each batch's episodes go to ``<out>/.batches/<key hash>.json`` (atomically) as the batch finishes.
+``d3grasp-eval --resume`` reuses a stored batch only when everything its episodes depend on is the
+same: the settings, the controller and its checkpoint file's bytes, the objects, seed and grasp
+types of the batch, the manifest and grasp file's bytes, the package's source and the Warp and
+Newton versions. Anything else runs again. The folder is removed once the outputs are written.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from collections.abc import Sequence
+from dataclasses import asdict
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+from d3grasp.files import atomic_write_text
+
+__all__ = ["BATCH_DIR_NAME", "BatchStore", "batch_key"]
+
+BATCH_DIR_NAME = ".batches"
+
+
+def _file_sha256(path: str | Path | None) -> str | None:
+    """SHA-256 of a file's bytes, None when there is no such file."""
+    if path is None or not Path(path).is_file():
+        return None
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+@cache
+def _code_fingerprint() -> dict[str, str]:
+    """What the episodes' numbers come from besides the inputs: this package's Python source (hashed)
+    and the simulator's versions. Computed once per process."""
+    import newton
+    import warp
+
+    import d3grasp
+
+    root = Path(d3grasp.__file__).parent
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode())
+        h.update(path.read_bytes())
+    return {"d3grasp_source": h.hexdigest(), "warp": warp.__version__, "newton": newton.__version__}
+
+
+def batch_key(
+    settings: Any,
+    spec: Any,
+    perception: str,
+    chunk: Sequence[str],
+    repeat: int,
+    manifest: str | None,
+    grasp_types: Sequence[str],
+) -> dict[str, Any]:
+    """Everything a batch's episodes depend on, as JSON-able values (the files by their SHA-256)."""
+    from d3grasp.envs.grasp_file import grasp_file_path
+    from d3grasp.paths import default_manifest
+
+    manifest_path = Path(manifest) if manifest is not None else default_manifest()
+    checkpoint = Path(spec.checkpoint)
+    return {
+        "settings": asdict(settings),
+        "spec": asdict(spec),
+        "checkpoint_sha256": _file_sha256(checkpoint) if checkpoint.suffix == ".pt" else None,
+        "perception": perception,
+        "objects": list(chunk),
+        "repeat": repeat,
+        "grasp_types": list(grasp_types),
+        "manifest": str(manifest_path),
+        "manifest_sha256": _file_sha256(manifest_path),
+        "grasps_sha256": _file_sha256(grasp_file_path(manifest_path)),
+        **_code_fingerprint(),
+    }
+
+
+def _key_hash(key: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:24]
+
+
+class BatchStore:
+    """The finished batches of one output folder."""
+
+    def __init__(self, out_dir: str | Path):
+        self.dir = Path(out_dir) / BATCH_DIR_NAME
+
+    def _path(self, key: dict[str, Any]) -> Path:
+        return self.dir / f"{_key_hash(key)}.json"
+
+    def load(self, key: dict[str, Any]) -> list[dict[str, Any]] | None:
+        """The stored episodes of the batch with this key; None if none or if stored for other inputs."""
+        path = self._path(key)
+        try:
+            doc = json.loads(path.read_text())
+        except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError):
+            return None
+        # The hash names the file; the full key inside guards against a collision or a hand-edited file.
+        if not isinstance(doc, dict) or doc.get("key") != json.loads(json.dumps(key, default=str)):
+            return None
+        episodes = doc.get("episodes")
+        return episodes if isinstance(episodes, list) else None
+
+    def save(self, key: dict[str, Any], episodes: list[dict[str, Any]]) -> None:
+        # NaN stays NaN here (Python's JSON reads it back); results.json writes it as null.
+        atomic_write_text(self._path(key), json.dumps({"key": key, "episodes": episodes}, default=str))
+
+    def clear(self) -> None:
+        shutil.rmtree(self.dir, ignore_errors=True)
