@@ -67,6 +67,41 @@ def _set_palm_pose_kernel(
     body_q[palm_body[w]] = wp.transform(p, quat[w])
 
 
+def rigid_iterations_run(n: int, iterations: int) -> list[bool]:
+    """Which of ``iterations`` solver iterations solve the rigid bodies when ``n`` of them do: evenly
+    spaced, the last one included (its result is the substep's)."""
+    if not 1 <= n <= iterations:
+        raise ValueError(f"sim.soft_rigid_iterations must be in [1, {iterations}] (0: all), got {n}")
+    return [(i + 1) * n // iterations > i * n // iterations for i in range(iterations)]
+
+
+def thin_rigid_iterations(solver: newton.solvers.SolverVBD, n: int) -> None:
+    """Make ``solver`` solve its rigid bodies on ``n`` of its iterations only (its particles on all)."""
+    runs = rigid_iterations_run(n, solver.iterations)
+    step, solve_rigid = solver.step, solver._solve_rigid_body_iteration
+    sweep = [0]
+
+    def step_counting(*args, **kwargs):
+        sweep[0] = 0
+        return step(*args, **kwargs)
+
+    def solve_rigid_some(*args, **kwargs):
+        k = sweep[0]
+        sweep[0] += 1
+        if runs[k % len(runs)]:
+            return solve_rigid(*args, **kwargs)
+        # An iteration without the rigid solve takes SolverVBD's own path for a solver that does not
+        # integrate bodies: the body-particle contacts' penalties still ramp as on every iteration.
+        solver._integrates_rigid_bodies = False
+        try:
+            return solve_rigid(*args, **kwargs)
+        finally:
+            solver._integrates_rigid_bodies = True
+
+    solver.step = step_counting
+    solver._solve_rigid_body_iteration = solve_rigid_some
+
+
 def capture_graph(launches: Callable[[], None], device: wp.context.Device) -> wp.Graph:
     """``launches`` captured as a Warp graph on ``device`` (run it once before: a capture records
     launches, it does not load modules or size lazy buffers)."""
@@ -108,6 +143,10 @@ class Physics:
             if sim.closed_form_tets:
                 use_closed_form_tets(self.solver)
             use_chebyshev(self.solver, sim.soft_chebyshev_rho)
+            if sim.soft_rigid_iterations:
+                rigid_iterations_run(sim.soft_rigid_iterations, sim.soft_iterations)  # refused on any model
+                if (layout.particle_count > 0).any():
+                    thin_rigid_iterations(self.solver, sim.soft_rigid_iterations)
             if not device.is_cuda:
                 # The body-particle contact kernel runs this many workers per colour and iteration,
                 # each striding over the active contacts (Newton sizes it to fill a GPU: one per
