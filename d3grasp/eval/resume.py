@@ -3,8 +3,9 @@
 Each batch's episodes go to ``<out>/.batches/<key hash>.json`` (atomically) as the batch finishes.
 ``d3grasp-eval --resume`` reuses a stored batch only when everything its episodes depend on is the
 same: the settings, the controller and its checkpoint file's bytes, the objects, seed and grasp
-types of the batch, the manifest and grasp file's bytes, the package's source and the Warp and
-Newton versions. Anything else runs again. The folder is removed once the outputs are written.
+types of the batch, the bytes of the manifest, the grasp file, the objects' and the hand's USD files,
+the package's source (kernels and training included) and the Warp and Newton versions. Anything else
+runs again. The folder is removed once the outputs are written.
 """
 
 from __future__ import annotations
@@ -34,19 +35,33 @@ def _file_sha256(path: str | Path | None) -> str | None:
 
 @cache
 def _code_fingerprint() -> dict[str, str]:
-    """What the episodes' numbers come from besides the inputs: this package's Python source (hashed)
-    and the simulator's versions. Computed once per process."""
+    """What the episodes' numbers come from besides the inputs: the package's Python source (hashed),
+    the hand's USD file and the simulator's versions. Computed once per process."""
     import newton
     import warp
 
     import d3grasp
+    import d3grasp.kernels
+    import d3grasp.train
+    from d3grasp.paths import hand_usd
 
-    root = Path(d3grasp.__file__).parent
+    # kernels/ and train/ install under d3grasp but live beside it in an editable install.
+    roots = [
+        Path(d3grasp.__file__).parent,
+        *map(Path, d3grasp.kernels.__path__),
+        *map(Path, d3grasp.train.__path__),
+    ]
+    files = sorted({path.resolve() for root in roots for path in root.rglob("*.py")})
     h = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
-        h.update(path.relative_to(root).as_posix().encode())
+    for path in files:
+        h.update(path.name.encode())
         h.update(path.read_bytes())
-    return {"d3grasp_source": h.hexdigest(), "warp": warp.__version__, "newton": newton.__version__}
+    return {
+        "d3grasp_source": h.hexdigest(),
+        "hand_sha256": _file_sha256(hand_usd()) or "",
+        "warp": warp.__version__,
+        "newton": newton.__version__,
+    }
 
 
 def batch_key(
@@ -59,11 +74,14 @@ def batch_key(
     grasp_types: Sequence[str],
 ) -> dict[str, Any]:
     """Everything a batch's episodes depend on, as JSON-able values (the files by their SHA-256)."""
+    from d3grasp.authoring.manifest import read_manifest, resolve_asset_path
     from d3grasp.envs.grasp_file import grasp_file_path
     from d3grasp.paths import default_manifest
 
     manifest_path = Path(manifest) if manifest is not None else default_manifest()
     checkpoint = Path(spec.checkpoint)
+    entries = {e.id: e for e in read_manifest(manifest_path)}
+    assets = {i: _file_sha256(resolve_asset_path(manifest_path, entries[i])) for i in chunk if i in entries}
     return {
         "settings": asdict(settings),
         "spec": asdict(spec),
@@ -75,6 +93,7 @@ def batch_key(
         "manifest": str(manifest_path),
         "manifest_sha256": _file_sha256(manifest_path),
         "grasps_sha256": _file_sha256(grasp_file_path(manifest_path)),
+        "assets_sha256": assets,  # the objects' USD files
         **_code_fingerprint(),
     }
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -404,6 +405,23 @@ def test_stored_batches_are_reused_only_for_the_same_inputs(tmp_path: Path, mani
         assert store.load(batch_key(settings, spec, "oracle", OBJECTS, 0, str(manifest), ("top",))) is None
     finally:
         manifest.write_text(manifest_text)
+    # So are the object's USD file's: a copy of one, edited after its batch was stored.
+    lib = default_manifest()
+    entry = next(e for e in read_manifest(lib) if e.id == OBJECTS[1])
+    usd = tmp_path / "assets" / Path(entry.path).name
+    usd.parent.mkdir()
+    shutil.copy(resolve_asset_path(lib, entry), usd)
+    own = tmp_path / "assets" / "manifest.json"
+    write_manifest(own, [replace(entry, path=usd.name)])
+    own_settings = replace(settings, objects=str(own))
+    own_key = batch_key(own_settings, spec, "oracle", OBJECTS[1:], 0, str(own), ("top",))
+    store.save(own_key, episodes)
+    assert store.load(own_key) is not None
+    usd.write_text(usd.read_text() + "# edited\n")
+    edited = batch_key(own_settings, spec, "oracle", OBJECTS[1:], 0, str(own), ("top",))
+    assert store.load(edited) is None
+    store.clear()
+    store.save(key, episodes)
     (path,) = (tmp_path / BATCH_DIR_NAME).iterdir()
     path.write_text("{not json")  # a torn or foreign file is not reused
     assert store.load(key) is None
