@@ -4,7 +4,7 @@ Each batch's episodes go to ``<out>/.batches/<key hash>.json`` (atomically) as t
 ``d3grasp-eval --resume`` reuses a stored batch only when everything its episodes depend on is the
 same: the settings, the controller and its checkpoint file's bytes, the objects, seed and grasp
 types of the batch, the bytes of the manifest, the grasp file, the objects' and the hand's USD files,
-the package's source (kernels and training included) and the Warp and Newton versions. Anything else
+the package's source (kernels included) and the Warp and Newton versions. Anything else
 runs again. The folder is removed once the outputs are written.
 """
 
@@ -42,15 +42,11 @@ def _code_fingerprint() -> dict[str, str]:
 
     import d3grasp
     import d3grasp.kernels
-    import d3grasp.train
     from d3grasp.paths import hand_usd
 
-    # kernels/ and train/ install under d3grasp but live beside it in an editable install.
-    roots = [
-        Path(d3grasp.__file__).parent,
-        *map(Path, d3grasp.kernels.__path__),
-        *map(Path, d3grasp.train.__path__),
-    ]
+    # kernels/ installs under d3grasp but lives beside it in an editable install. The training code is
+    # not part of an evaluation (tests/test_layout.py): beside it, its edits do not count.
+    roots = [Path(d3grasp.__file__).parent, *map(Path, d3grasp.kernels.__path__)]
     files = sorted({path.resolve() for root in roots for path in root.rglob("*.py")})
     h = hashlib.sha256()
     for path in files:
