@@ -46,8 +46,6 @@ def _exit_with_parent() -> None:
 def _init_worker() -> None:
     # One torch thread per process: the processes already fill the cores. Warp quiet: one banner per
     # process would bury the parent's progress bar.
-    import threading
-
     import torch
 
     from d3grasp.console import quiet_warp

@@ -75,9 +75,9 @@ def rigid_iterations_run(n: int, iterations: int) -> list[bool]:
     return [(i + 1) * n // iterations > i * n // iterations for i in range(iterations)]
 
 
-def thin_rigid_iterations(solver: newton.solvers.SolverVBD, n: int) -> None:
-    """Make ``solver`` solve its rigid bodies on ``n`` of its iterations only (its particles on all)."""
-    runs = rigid_iterations_run(n, solver.iterations)
+def thin_rigid_iterations(solver: newton.solvers.SolverVBD, runs: list[bool]) -> None:
+    """Make ``solver`` solve its rigid bodies only on the iterations ``runs`` marks (its particles on
+    all; :func:`rigid_iterations_run`)."""
     step, solve_rigid = solver.step, solver._solve_rigid_body_iteration
     sweep = [0]
 
@@ -144,9 +144,10 @@ class Physics:
                 use_closed_form_tets(self.solver)
             use_chebyshev(self.solver, sim.soft_chebyshev_rho)
             if sim.soft_rigid_iterations:
-                rigid_iterations_run(sim.soft_rigid_iterations, sim.soft_iterations)  # refused on any model
+                # A bad value is refused on any model, soft or not.
+                runs = rigid_iterations_run(sim.soft_rigid_iterations, sim.soft_iterations)
                 if (layout.particle_count > 0).any():
-                    thin_rigid_iterations(self.solver, sim.soft_rigid_iterations)
+                    thin_rigid_iterations(self.solver, runs)
             if not device.is_cuda:
                 # The body-particle contact kernel runs this many workers per colour and iteration,
                 # each striding over the active contacts (Newton sizes it to fill a GPU: one per

@@ -43,7 +43,7 @@ from d3grasp.eval.metrics import (
     outcomes_markdown,
     table_markdown,
 )
-from d3grasp.eval.resume import BatchStore, batch_key
+from d3grasp.eval.resume import BatchStore, batch_keys
 from d3grasp.files import atomic_write_text
 from d3grasp.policies import BASELINE, resolve_checkpoint
 from d3grasp.vision.perception import localisation_markdown, localisation_summary
@@ -397,13 +397,15 @@ def evaluate(
     all_batches = plan_batches(jobs, ids, kinds, W, K)
     manifest_arg = str(manifest) if manifest is not None else None
     runs: dict[str, list[dict[str, Any]]] = {spec.label: [] for spec in specs}
-    keys = [batch_key(settings, *b, manifest_arg, grasp_types) for b in all_batches] if store else []
-    batches, batch_keys = [], []
-    for k, b in enumerate(all_batches):
-        stored = store.load(keys[k]) if store else None
+    keys: list[dict[str, Any] | None] = [None] * len(all_batches)
+    if store is not None:
+        keys = list(batch_keys(settings, all_batches, manifest_arg, grasp_types))
+    batches, keys_to_run = [], []  # the batches not stored by an earlier run, and their keys
+    for b, key in zip(all_batches, keys, strict=True):
+        stored = store.load(key) if store else None
         if stored is None:
             batches.append(b)
-            batch_keys.append(keys[k] if store else None)
+            keys_to_run.append(key)
         else:
             runs[b[0].label].extend(stored)
     if env_factory is not None:
@@ -431,7 +433,7 @@ def evaluate(
         def done(k: int, eps: list[dict[str, Any]]) -> None:
             runs[batches[k][0].label].extend(eps)
             if store is not None:
-                store.save(batch_keys[k], eps)
+                store.save(keys_to_run[k], eps)
             if workers > 1:
                 bar.update(len(eps))
 

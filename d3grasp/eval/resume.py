@@ -21,16 +21,16 @@ from typing import Any
 
 from d3grasp.files import atomic_write_text
 
-__all__ = ["BATCH_DIR_NAME", "BatchStore", "batch_key"]
+__all__ = ["BATCH_DIR_NAME", "BatchStore", "batch_keys"]
 
 BATCH_DIR_NAME = ".batches"
 
 
-def _file_sha256(path: str | Path | None) -> str | None:
+def _file_sha256(path: str | Path) -> str | None:
     """SHA-256 of a file's bytes, None when there is no such file."""
-    if path is None or not Path(path).is_file():
-        return None
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    from d3grasp.envs.grasp_file import asset_sha256
+
+    return asset_sha256(path) if Path(path).is_file() else None
 
 
 @cache
@@ -60,38 +60,44 @@ def _code_fingerprint() -> dict[str, str]:
     }
 
 
-def batch_key(
+def batch_keys(
     settings: Any,
-    spec: Any,
-    perception: str,
-    chunk: Sequence[str],
-    repeat: int,
+    batches: Sequence[tuple[Any, str, Sequence[str], int]],
     manifest: str | None,
     grasp_types: Sequence[str],
-) -> dict[str, Any]:
-    """Everything a batch's episodes depend on, as JSON-able values (the files by their SHA-256)."""
+) -> list[dict[str, Any]]:
+    """Everything each batch ``(spec, perception, object ids, repeat)``'s episodes depend on, as
+    JSON-able values (the files by their SHA-256). What the batches share is read and hashed once."""
     from d3grasp.authoring.manifest import read_manifest, resolve_asset_path
     from d3grasp.envs.grasp_file import grasp_file_path
     from d3grasp.paths import default_manifest
 
     manifest_path = Path(manifest) if manifest is not None else default_manifest()
-    checkpoint = Path(spec.checkpoint)
-    entries = {e.id: e for e in read_manifest(manifest_path)}
-    assets = {i: _file_sha256(resolve_asset_path(manifest_path, entries[i])) for i in chunk if i in entries}
-    return {
+    shared = {
         "settings": asdict(settings),
-        "spec": asdict(spec),
-        "checkpoint_sha256": _file_sha256(checkpoint) if checkpoint.suffix == ".pt" else None,
-        "perception": perception,
-        "objects": list(chunk),
-        "repeat": repeat,
         "grasp_types": list(grasp_types),
         "manifest": str(manifest_path),
         "manifest_sha256": _file_sha256(manifest_path),
         "grasps_sha256": _file_sha256(grasp_file_path(manifest_path)),
-        "assets_sha256": assets,  # the objects' USD files
         **_code_fingerprint(),
     }
+    entries = {e.id: e for e in read_manifest(manifest_path)}
+    ids = {i for _, _, chunk, _ in batches for i in chunk if i in entries}
+    asset_sha = {i: _file_sha256(resolve_asset_path(manifest_path, entries[i])) for i in ids}
+    checkpoints = {spec.checkpoint for spec, *_ in batches}
+    checkpoint_sha = {c: _file_sha256(c) if Path(c).suffix == ".pt" else None for c in checkpoints}
+    return [
+        {
+            **shared,
+            "spec": asdict(spec),
+            "checkpoint_sha256": checkpoint_sha[spec.checkpoint],
+            "perception": perception,
+            "objects": list(chunk),
+            "repeat": repeat,
+            "assets_sha256": {i: asset_sha[i] for i in chunk if i in asset_sha},  # the objects' USD files
+        }
+        for spec, perception, chunk, repeat in batches
+    ]
 
 
 def _key_hash(key: dict[str, Any]) -> str:

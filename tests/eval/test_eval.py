@@ -379,7 +379,10 @@ def test_a_stopped_run_resumes_where_it_was(
 
 def test_stored_batches_are_reused_only_for_the_same_inputs(tmp_path: Path, manifest: Path) -> None:
     from d3grasp.eval.evaluate import EvalSettings, RunSpec
-    from d3grasp.eval.resume import BATCH_DIR_NAME, BatchStore, batch_key
+    from d3grasp.eval.resume import BATCH_DIR_NAME, BatchStore, batch_keys
+
+    def batch_key(settings, spec, perception, chunk, repeat, manifest, grasp_types):  # one batch's key
+        return batch_keys(settings, [(spec, perception, chunk, repeat)], manifest, grasp_types)[0]
 
     settings = EvalSettings(objects=str(manifest), split="all")
     spec = RunSpec("baseline", DEFAULT_TASK, "baseline")
