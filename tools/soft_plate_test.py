@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -45,10 +44,11 @@ import newton  # noqa: E402
 import warp as wp  # noqa: E402
 
 from d3grasp.authoring.manifest import AssetEntry, read_manifest, resolve_asset_path  # noqa: E402
+from d3grasp.authoring.usd_soft import read_soft_usd  # noqa: E402
 from d3grasp.cli.args import run_command  # noqa: E402
 from d3grasp.console import quiet_warp  # noqa: E402
 from d3grasp.envs.config import SimConfig  # noqa: E402
-from d3grasp.envs.physics import use_closed_form_tets  # noqa: E402
+from d3grasp.envs.physics import capture_graph, use_closed_form_tets  # noqa: E402
 from kernels import strain as strain_k  # noqa: E402
 
 GRAVITY = 9.81
@@ -74,13 +74,9 @@ def plate_test(
     # Newton takes no contact radius from USD and defaults to 0.1 m (d3grasp.envs.scene.build_scene).
     builder.default_particle_radius = float(entry.stats.get("particle_radius", 0.003))
     builder.add_ground_plane()
-    n0 = builder.particle_count
-    builder.add_usd(str(usd_path), xform=wp.transform_identity())
-    rest = np.asarray(builder.particle_q[n0:], dtype=float)
+    rest = np.asarray(read_soft_usd(usd_path)["points"], dtype=float)  # the nodes, object frame
     lift = -rest[:, 2].min() + sim.soft_contact_gap * 0.5
-    for i in range(n0, builder.particle_count):
-        p = builder.particle_q[i]
-        builder.particle_q[i] = wp.vec3(p[0], p[1], p[2] + lift)
+    builder.add_usd(str(usd_path), xform=wp.transform(wp.vec3(0.0, 0.0, lift), wp.quat_identity()))
     top = rest[:, 2].max() + lift
     half = 0.6 * float(max(ext[0], ext[1])) + 0.02
     z0 = top + PLATE_CLEARANCE + PLATE_HALF_THICKNESS
@@ -139,7 +135,10 @@ def plate_test(
             pipeline.collide(s_in, contacts)
             solver.step(s_in, s_out, control, contacts, dt)
 
-    graph = capture_step(control_step, model.device, sim.substeps)
+    if sim.substeps % 2:
+        raise ValueError("sim.substeps must be even: the captured step alternates two states")
+    control_step()  # sizes the solver's lazy buffers before the capture
+    graph = capture_graph(control_step, model.device)
     for _ in range(max(1, round(seconds * sim.control_hz)) - 1):
         wp.capture_launch(graph)
     q = states[0].particle_q.numpy()
@@ -155,16 +154,6 @@ def plate_test(
         "eps_bar": float(buf.object_eps.numpy()[0]),
         "finite": bool(np.isfinite(q).all()),
     }
-
-
-def capture_step(control_step: Callable[[], None], device: wp.context.Device, substeps: int) -> wp.Graph:
-    """Run ``control_step`` once (it sizes the solver's lazy buffers), then capture it."""
-    if substeps % 2:
-        raise ValueError("sim.substeps must be even: the captured step alternates two states")
-    control_step()
-    with wp.ScopedDevice(device), wp.ScopedCapture() as capture:
-        control_step()
-    return capture.graph
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,6 +14,7 @@ import pytest
 
 from d3grasp.authoring.manifest import AssetEntry
 from d3grasp.authoring.usd_soft import write_soft_usd
+from d3grasp.envs.config import SimConfig
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -80,8 +81,6 @@ def test_block_under_plate_follows_hookes_law(tmp_path):
         stats={"particle_radius": 0.003},
     )
     tool = _tool()
-    from d3grasp.envs.config import SimConfig
-
     strain = 0.05
     # Solved to convergence (80 SolverVBD iterations a substep; the environment's 20 leave a mesh of
     # this many nodes stiffer than its modulus: the tool's docstring).
