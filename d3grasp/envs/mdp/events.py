@@ -207,8 +207,10 @@ def _restart_state(env: GraspEnv, ids: np.ndarray, arrays: ModelArrays) -> None:
         newton.eval_fk(model, model.joint_q, model.joint_qd, st, mask=mask)
     # Joint readings of the reset worlds (the others keep theirs until the next step's IK).
     q_idx = np.concatenate([np.concatenate([lay.root_q[w], lay.finger_q[w]]) for w in ids])
-    env.t_joint_q[torch.as_tensor(q_idx, dtype=torch.long)] = torch.as_tensor(
-        arrays.joint_q[q_idx], dtype=torch.float32
+    # Values and index on the tensor's device: index_put_ moves only a scalar value across devices.
+    dev = env.t_joint_q.device
+    env.t_joint_q[torch.as_tensor(q_idx, dtype=torch.long, device=dev)] = torch.as_tensor(
+        arrays.joint_q[q_idx], dtype=torch.float32, device=dev
     )
     dof_idx = np.concatenate([np.concatenate([lay.root_dof[w], lay.finger_dof[w]]) for w in ids])
     env.t_joint_qd[torch.as_tensor(dof_idx, dtype=torch.long)] = 0.0

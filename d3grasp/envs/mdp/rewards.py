@@ -95,8 +95,8 @@ def compute_rewards(env: GraspEnv, obj_pos, obj_lin, obj_ang, finite) -> torch.T
     )
     nodes = torch.zeros(env.num_envs, device=env.torch_device)
     if sensors.strain_layout is not None:
-        nodes[torch.as_tensor(sensors.soft_worlds)] = torch.as_tensor(
-            sensors.strain_layout.node_counts, dtype=torch.float32
+        nodes[torch.as_tensor(sensors.soft_worlds, device=nodes.device)] = torch.as_tensor(
+            sensors.strain_layout.node_counts, dtype=torch.float32, device=nodes.device
         )
     r["node_count"][:] = nodes
     # Rise above the resting height, counted from the lift phase on (the kernel clamps it).
