@@ -49,6 +49,7 @@ from d3grasp.cli.args import run_command  # noqa: E402
 from d3grasp.console import quiet_warp  # noqa: E402
 from d3grasp.envs.config import SimConfig  # noqa: E402
 from d3grasp.envs.physics import capture_graph, use_closed_form_tets  # noqa: E402
+from d3grasp.envs.scene import set_tet_damping  # noqa: E402
 from kernels import strain as strain_k  # noqa: E402
 
 GRAVITY = 9.81
@@ -107,10 +108,7 @@ def plate_test(
     model.soft_contact_ke = sim.soft_contact_ke
     model.soft_contact_kd = sim.soft_contact_kd
     model.soft_contact_mu = sim.soft_contact_mu
-    # Newton does not read the tet damping from USD (d3grasp.envs.scene.apply_soft_damping).
-    mats = model.tet_materials.numpy()
-    mats[:, 2] = float(entry.material.get("damping", 0.0))
-    model.tet_materials.assign(mats)
+    set_tet_damping(model, [(0, model.tet_count, float(entry.material.get("damping", 0.0)))])
     solver = newton.solvers.SolverVBD(
         model,
         iterations=iterations or sim.soft_iterations,

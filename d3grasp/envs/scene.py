@@ -14,6 +14,7 @@ type's orientation stays well inside ±π/2.
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -232,14 +233,30 @@ def select_world_objects(
     return manifest, world_entries
 
 
-def apply_soft_damping(model: newton.Model, layout: SceneLayout, soft_damping: float | None) -> None:
-    """Set each soft object's tet damping: Newton does not read it from USD, so it comes from the
-    manifest entry's material (or ``soft_damping`` for all, when given)."""
-    if not model.tet_count:
+def set_tet_damping(model: newton.Model, ranges: Iterable[tuple[int, int, float]]) -> None:
+    """Write damping ``d`` on the model's tets ``[start, end)`` for each ``(start, end, d)``: Newton
+    does not read a tet's damping from USD (column 2 of ``tet_materials``)."""
+    ranges = list(ranges)
+    if not model.tet_count or not ranges:
         return
     mats = model.tet_materials.numpy()
-    for w, e in enumerate(layout.entries):
-        if e.kind == "deformable":
-            d = soft_damping if soft_damping is not None else float(e.material.get("damping", 0.0))
-            mats[layout.tet_start[w] : layout.tet_start[w] + layout.tet_count[w], 2] = d
+    for start, end, d in ranges:
+        mats[start:end, 2] = d
     model.tet_materials.assign(mats)
+
+
+def apply_soft_damping(model: newton.Model, layout: SceneLayout, soft_damping: float | None) -> None:
+    """Set each soft object's tet damping from its manifest entry's material (or ``soft_damping``
+    for all, when given)."""
+    set_tet_damping(
+        model,
+        (
+            (
+                int(layout.tet_start[w]),
+                int(layout.tet_start[w] + layout.tet_count[w]),
+                soft_damping if soft_damping is not None else float(e.material.get("damping", 0.0)),
+            )
+            for w, e in enumerate(layout.entries)
+            if e.kind == "deformable"
+        ),
+    )

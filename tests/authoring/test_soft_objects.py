@@ -269,6 +269,8 @@ def test_soft_objects_rest_stably_on_ground():
     import newton
     import warp as wp
 
+    from d3grasp.envs.scene import set_tet_damping
+
     ids = ["sponge_kitchen_m", "rubber_ball_m", "rubber_duck_l", "plush_blob_s"]
     byid = {e.id: e for e in _soft_entries()}
     radius = 0.003
@@ -289,10 +291,8 @@ def test_soft_objects_rest_stably_on_ground():
     b.color()
     model = b.finalize(device="cpu")
     model.soft_contact_ke, model.soft_contact_kd, model.soft_contact_mu = 1e4, 1e-2, 1.0
-    tm = model.tet_materials.numpy()
-    for aid, (_, _, t0, t1) in zip(ids, ranges, strict=True):
-        tm[t0:t1, 2] = byid[aid].material["damping"]
-    model.tet_materials.assign(tm)
+    damping = [byid[aid].material["damping"] for aid in ids]
+    set_tet_damping(model, [(t0, t1, d) for d, (_, _, t0, t1) in zip(damping, ranges, strict=True)])
     solver = newton.solvers.SolverVBD(model, iterations=5, particle_enable_self_contact=False)
     pipe = newton.CollisionPipeline(model, soft_contact_gap=0.005)
     contacts = pipe.contacts()
