@@ -130,8 +130,11 @@ class GraspEnv:
         ph, se = self.physics, self.sensors
         rewards.allocate(self)
         # Torch views of device arrays (zero-copy).
+        # state_0 is the same object after every control step (an even number of substeps swap it).
         self.t_joint_q = wp_view(ph.state_0.joint_q)
         self.t_joint_qd = wp_view(ph.state_0.joint_qd)
+        self.t_body_q = wp_view(ph.state_0.body_q)
+        self.t_body_qd = wp_view(ph.state_0.body_qd)
         self.t_target = wp_view(ph.control.joint_target_q)
         self.t_object_force = wp_view(ph.object_force)
         self.t_palm_pos_start = wp_view(ph.palm_pos_start)
@@ -263,7 +266,7 @@ class GraspEnv:
 
     def object_state(self) -> tuple[torch.Tensor, ...]:
         """Every world's object position, orientation (xyzw), linear and angular velocity."""
-        return self.sensors.object_state(self.state_0, self.i_obj_body)
+        return self.sensors.object_state(self.t_body_q, self.t_body_qd, self.i_obj_body)
 
     # ------------------------------------------------------------------------------------------
     # The control step
@@ -282,7 +285,7 @@ class GraspEnv:
     def _command_palm(self, pos: torch.Tensor) -> None:
         if self.layout.kinematic_palm:
             # The captured substeps move the palm from its current position to ``pos``.
-            self.t_palm_pos_start[:] = wp_view(self.state_0.body_q)[self.i_palm, :3]
+            self.t_palm_pos_start[:] = self.t_body_q[self.i_palm, :3]
             self.t_palm_pos_end[:] = pos
             self.t_palm_quat[:] = self.grasp_palm_quat
             return
@@ -336,8 +339,9 @@ class GraspEnv:
         self.episode_return += rew
 
         extras: dict[str, Any] = {"time_outs": time_out, "log": {}}
-        for k, name in enumerate(rk.TERM_NAMES):
-            extras["log"][f"Reward/{name}"] = self.t_reward_terms[:, k].mean()
+        # One mean over the worlds for all terms (a mean per term is a reduction launch each).
+        for name, mean in zip(rk.TERM_NAMES, self.t_reward_terms.mean(0).unbind(), strict=True):
+            extras["log"][f"Reward/{name}"] = mean
         if self.cfg.residual_penalty:
             extras["log"]["Reward/residual"] = self.t_residual_term.mean()
         finished = torch.nonzero(done).flatten()

@@ -49,12 +49,20 @@ class EpisodeScript:
         bounds = np.cumsum([0] + [self.phase_steps[p] for p in PHASES])
         self.phase_start = {p: int(bounds[i]) for i, p in enumerate(PHASES)}
         self.max_episode_length = int(bounds[-1])
+        self._constants: dict[torch.device, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def _on(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+        """(phase starts after the first, push directions) on ``device``, made once: a tensor built
+        from Python values costs more than the step's use of it."""
+        if device not in self._constants:
+            starts = torch.as_tensor([self.phase_start[p] for p in PHASES[1:]], device=device)
+            self._constants[device] = (starts, torch.as_tensor(DISTURB_DIRECTIONS, device=device))
+        return self._constants[device]
 
     def phase_of(self, t: torch.Tensor, lift_start: torch.Tensor | None = None) -> torch.Tensor:
         """Phase index (into :data:`PHASES`) of every world at step ``t``; a world whose lift started
         early (``lift_start`` (W,) steps) is in the lift phase from then on."""
-        starts = torch.as_tensor([self.phase_start[p] for p in PHASES[1:]], device=t.device)
-        phase = torch.bucketize(t, starts, right=True)
+        phase = torch.bucketize(t, self._on(t.device)[0], right=True)
         if lift_start is not None:
             early = (phase == PHASES.index("grasp")) & (t >= lift_start)
             phase = torch.where(early, PHASES.index("lift"), phase)
@@ -86,5 +94,5 @@ class EpisodeScript:
         in_push = phase == PHASES.index("disturb")
         k = ((t - self.phase_start["disturb"]).clamp(min=0) // self.steps_per_push).clamp(max=5)
         dir_idx = disturb_order[torch.arange(len(t)), k]
-        dirs = torch.as_tensor(DISTURB_DIRECTIONS, device=t.device)[dir_idx]
+        dirs = self._on(t.device)[1][dir_idx]
         return dirs * self.cfg.disturb_force * in_push[:, None].float()

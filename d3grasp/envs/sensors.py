@@ -89,6 +89,11 @@ class Sensors:
             )
             self.strain_buf = strain_k.StrainBuffers.allocate(self.strain_layout)
             self.pose_buf = rot_k.ObjectPoseBuffers.allocate(self.strain_layout, model.particle_mass)
+        # Made once: a torch tensor or view per step is a conversion that costs more than the read.
+        self.t_soft_worlds = torch.as_tensor(soft_worlds, dtype=torch.long, device=wp.device_to_torch(device))
+        if self.strain_layout is not None:
+            pb = self.pose_buf
+            self.t_pose = tuple(wp_view(a) for a in (pb.com, pb.quat, pb.lin_vel, pb.ang_vel))
 
     def update(self, state: newton.State, contacts: newton.Contacts, observables) -> None:
         """Read every sensor from the state after a control step (Warp launches only: capturable)."""
@@ -136,24 +141,23 @@ class Sensors:
 
     def soft_scalar(self, buf: wp.array) -> torch.Tensor:
         """A per-soft-object quantity spread onto all worlds (0 where the object is rigid)."""
-        out = torch.zeros(self.layout.num_worlds, device=wp_view(self.pad_force).device)
+        out = torch.zeros(self.layout.num_worlds, device=self.t_soft_worlds.device)
         if self.strain_layout is not None:
-            out[torch.as_tensor(self.soft_worlds, device=out.device)] = wp_view(buf)
+            out[self.t_soft_worlds] = wp_view(buf)
         return out
 
-    def object_state(self, state: newton.State, object_body: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def object_state(
+        self, body_q: torch.Tensor, body_qd: torch.Tensor, object_body: torch.Tensor
+    ) -> tuple[torch.Tensor, ...]:
         """Every world's object position, orientation (xyzw), linear and angular velocity (W, ...):
-        the body's for a rigid object, the deformable pose's for a soft one."""
-        bq = wp_view(state.body_q)
-        bqd = wp_view(state.body_qd)
-        pos = bq[object_body, :3].clone()
-        quat = bq[object_body, 3:7].clone()
-        lin = bqd[object_body, :3].clone()
-        ang = bqd[object_body, 3:6].clone()
+        the body's for a rigid object (from the state's ``body_q`` and ``body_qd`` views), the
+        deformable pose's for a soft one."""
+        pos = body_q[object_body, :3].clone()
+        quat = body_q[object_body, 3:7].clone()
+        lin = body_qd[object_body, :3].clone()
+        ang = body_qd[object_body, 3:6].clone()
         if self.strain_layout is not None:
-            sw = torch.as_tensor(self.soft_worlds, device=pos.device)
-            pos[sw] = wp_view(self.pose_buf.com)
-            quat[sw] = wp_view(self.pose_buf.quat)
-            lin[sw] = wp_view(self.pose_buf.lin_vel)
-            ang[sw] = wp_view(self.pose_buf.ang_vel)
+            sw = self.t_soft_worlds
+            for out, view in zip((pos, quat, lin, ang), self.t_pose, strict=True):
+                out[sw] = view
         return pos, quat, lin, ang

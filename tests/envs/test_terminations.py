@@ -37,7 +37,7 @@ def _env(num_worlds: int, lift_on_touch: bool = True) -> SimpleNamespace:
         t_pad_force_object=torch.zeros(W, NUM_PADS, 3),
         t_pad_force_true=torch.zeros(W, NUM_PADS, 3),
         residual_base=None,
-        state_0=SimpleNamespace(body_q=wp.zeros(W, dtype=wp.transform)),
+        t_body_q=torch.zeros(W, 7),  # the bodies' poses (position, quaternion xyzw)
         i_palm=torch.arange(W),
         object_start=torch.zeros(W, 3),
         sensors=SimpleNamespace(strain_layout=None),
@@ -79,9 +79,8 @@ def _run(env, object_path, palm_path, object_pads, table_pads=None):
         env.t_pad_force_object = object_pads(t)
         env.t_pad_force_true = object_pads(t) + (table_pads(t) if table_pads else 0.0)
         palm = palm_path(t).numpy()
-        env.state_0.body_q = wp.array(
-            np.concatenate([palm, np.tile([0, 0, 0, 1.0], (W, 1))], axis=1).astype(np.float32),
-            dtype=wp.transform,
+        env.t_body_q = torch.as_tensor(
+            np.concatenate([palm, np.tile([0, 0, 0, 1.0], (W, 1))], axis=1), dtype=torch.float32
         )
         obj = object_path(t)
         terminations.score(env, tt, obj, torch.ones(W, dtype=torch.bool))

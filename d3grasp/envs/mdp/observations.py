@@ -9,6 +9,7 @@ hand-object distances, strain and the deformable rotation's sigma, material, tru
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -16,7 +17,6 @@ from typing import TYPE_CHECKING
 import torch
 from tensordict import TensorDict
 
-from d3grasp.envs.sensors import wp_view
 from d3grasp.vocabulary import GRASP_TYPES, PHASES
 
 if TYPE_CHECKING:
@@ -64,11 +64,18 @@ def episode_clock(env: GraspEnv) -> torch.Tensor:
 
 
 def grasp_type(env: GraspEnv) -> torch.Tensor:
-    return torch.nn.functional.one_hot(env.grasp_id, len(GRASP_TYPES)).float()
+    return _one_hot(len(GRASP_TYPES), env.torch_device)[env.grasp_id]
 
 
 def phase(env: GraspEnv) -> torch.Tensor:
-    return torch.nn.functional.one_hot(env.phase_of(env.episode_length_buf), len(PHASES)).float()
+    return _one_hot(len(PHASES), env.torch_device)[env.phase_of(env.episode_length_buf)]
+
+
+@functools.cache
+def _one_hot(n: int, device: torch.device) -> torch.Tensor:
+    """(n, n) float identity: row i is the one-hot code of i (``one_hot`` checks its input's range
+    on every call, a host round trip)."""
+    return torch.eye(n, dtype=torch.float32, device=device)
 
 
 def palm_offset(env: GraspEnv) -> torch.Tensor:
@@ -114,12 +121,12 @@ def policy_terms(env: GraspEnv) -> list[tuple[str, Term]]:
 
 
 def object_offset(env: GraspEnv, obj: tuple[torch.Tensor, ...]) -> torch.Tensor:
-    palm = wp_view(env.state_0.body_q)[env.i_palm, :3]
+    palm = env.t_body_q[env.i_palm, :3]
     return (obj[0] - palm) * env.cfg.obs.object_offset_scale
 
 
 def link_distances(env: GraspEnv, obj: tuple[torch.Tensor, ...]) -> torch.Tensor:
-    links = wp_view(env.state_0.body_q)[env.i_link_bodies, :3]
+    links = env.t_body_q[env.i_link_bodies, :3]
     return torch.linalg.norm(links - obj[0][:, None], dim=-1) * env.cfg.obs.link_distance_scale
 
 

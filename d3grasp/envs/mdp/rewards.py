@@ -78,7 +78,7 @@ def allocate(env: GraspEnv) -> None:
 
 def compute_rewards(env: GraspEnv, obj_pos, obj_lin, obj_ang, finite) -> torch.Tensor:
     """The step's reward of every world (W,), non-finite values zeroed and clipped at ``reward_clip``."""
-    links = wp_view(env.state_0.body_q)[env.i_link_bodies, :3]
+    links = env.t_body_q[env.i_link_bodies, :3]
     r = env.t_rw
     r["alive"][:] = finite.float()
     r["joint_q"][:] = torch.nan_to_num(env.t_joint_q[env.i_finger_q])

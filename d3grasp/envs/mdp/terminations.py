@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING, Any
 
 import torch
 
 from d3grasp.dexhand13 import OPPOSING_PADS, PAD_NAMES, THUMB_PADS
 from d3grasp.envs.script import DISTURB_NAMES
-from d3grasp.envs.sensors import wp_view
 from d3grasp.vocabulary import GRASP_TYPES
 
 if TYPE_CHECKING:
@@ -58,7 +58,18 @@ def pad_grasp(pad_force_object: torch.Tensor) -> torch.Tensor:
 def thumb_opposed(touching: torch.Tensor) -> torch.Tensor:
     """(W,) bool: of the (W, 11) touching pads (:func:`pads_touching`), a thumb pad and an opposing
     finger pad."""
-    return touching[:, list(THUMB_PADS)].any(-1) & touching[:, list(OPPOSING_PADS)].any(-1)
+    thumb, opposing = _pad_masks(touching.device)
+    return (touching & thumb).any(-1) & (touching & opposing).any(-1)
+
+
+@functools.cache
+def _pad_masks(device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """(11,) bool masks of the thumb's pads and the opposing fingers' pads on ``device``, made once
+    (indexing with a Python list converts the list on every call)."""
+    masks = torch.zeros(2, len(PAD_NAMES), dtype=torch.bool, device=device)
+    masks[0, list(THUMB_PADS)] = True
+    masks[1, list(OPPOSING_PADS)] = True
+    return masks[0], masks[1]
 
 
 def score(
@@ -99,7 +110,7 @@ def _fail(env: GraspEnv, worlds: torch.Tensor, reason: str) -> None:
 
 def _update_metrics(env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor, touching: torch.Tensor) -> None:
     script, ph = env.script, env.cfg.phases
-    palm = wp_view(env.state_0.body_q)[env.i_palm, :3]
+    palm = env.t_body_q[env.i_palm, :3]
     rise = obj_pos[:, 2] - env.object_start[:, 2]
     sensors = env.sensors
     if sensors.strain_layout is not None:
