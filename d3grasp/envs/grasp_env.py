@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from dataclasses import asdict
 from typing import Any
 
@@ -32,7 +33,7 @@ from d3grasp.authoring.manifest import resolve_asset_path
 from d3grasp.dexhand13 import ABDUCTION_JOINTS, NUM_FINGER_JOINTS, NUM_FINGERS, NUM_PADS
 from d3grasp.envs.baseline import RuleBasedController, rest_targets
 from d3grasp.envs.config import ACTION_MODES, GRASP_SOURCES, PERCEPTION_MODES, GraspEnvConfig
-from d3grasp.envs.grasp_file import load_grasp_plan
+from d3grasp.envs.grasp_file import changed_settings, environment_record, load_grasp_plan
 from d3grasp.envs.mdp import actions as mdp_actions
 from d3grasp.envs.mdp import events, observations, rewards, terminations
 from d3grasp.envs.physics import Physics
@@ -72,6 +73,8 @@ class GraspEnv:
         # Grasps: the library's grasp file (the planner's measured grasps per object), if it has one
         # and the config asks for it; the planner itself sets a per-world override to score candidates.
         self.grasp_plan = load_grasp_plan(self.manifest_path) if cfg.grasp_source == "file" else None
+        if self.grasp_plan:
+            _warn_changed_settings(self.grasp_plan, self.world_entries, environment_record(cfg.sim))
         self.grasp_override: list | None = None
         self._build()
         self._allocate_buffers()
@@ -369,6 +372,24 @@ class GraspEnv:
 
     def close(self) -> None:
         self.physics.graph = None
+
+
+def _warn_changed_settings(plan: dict[str, Any], entries: list[Any], current: dict[str, Any]) -> None:
+    """One warning when the worlds' stored grasps were measured under other simulation or rule
+    settings than this environment's: they may not hold here."""
+    changed: dict[str, list[str]] = {}
+    for e in entries:
+        stored = plan.get(e.id)
+        for c in changed_settings(stored.environment if stored else None, current):
+            changed.setdefault(c, []).append(e.id)
+    if changed:
+        ids = sorted({i for v in changed.values() for i in v})
+        warnings.warn(
+            f"the grasps of {len(ids)} object(s) ({', '.join(ids[:3])}{', ...' if len(ids) > 3 else ''}) "
+            f"were planned under other settings ({'; '.join(changed)}): they may not hold under these; "
+            "replan them with `d3grasp-assets plan-grasps`",
+            stacklevel=4,
+        )
 
 
 def _check_config(cfg: GraspEnvConfig, num_envs: int) -> None:

@@ -9,6 +9,7 @@ Schema::
       "objects": {
         "<asset id>": {
           "asset_sha256": "...",             # the asset file the grasps were measured on
+          "environment": {"sim": {...}, "rule": {...}},  # the settings its trials ran under
           "grasps": {"<type>": {ObjectGrasp.to_json(), "score": float, "trials": {...}}, ...}
         }, ...
       }
@@ -17,6 +18,9 @@ Schema::
 A grasp is stored in the object's frame (``d3grasp.envs.grasps.ObjectGrasp``) and placed with the
 object's pose at run time. An entry whose asset file has changed since it was planned is ignored
 (the object falls back to the geometric rule) rather than used for a shape it was not measured on.
+An entry measured under other simulation or rule settings than an environment's is used, with a
+warning (:func:`changed_settings`), and planned again by the next ``plan-grasps``; entries planned
+before the file recorded the settings (no ``environment``) are taken as current.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +62,7 @@ class StoredGrasps:
     grasps: dict[str, ObjectGrasp]
     scores: dict[str, float]
     extents: np.ndarray = field(default_factory=lambda: np.ones(3))  # the object's manifest extents
+    environment: dict[str, Any] | None = None  # the settings its trials ran under (None: not recorded)
 
     def best(self, allowed: tuple[str, ...]) -> str | None:
         types = [g for g in allowed if g in self.grasps]
@@ -79,6 +84,27 @@ class StoredGrasps:
                 best = key
         assert best is not None
         return best[2]
+
+
+def environment_record(sim: Any) -> dict[str, Any]:
+    """What a grasp's trials depend on besides the planner's own settings and the asset: the
+    simulation settings (``SimConfig``) and the rule's (``BaselineConfig``), as JSON values."""
+    from d3grasp.envs.baseline import BaselineConfig
+
+    return json.loads(json.dumps({"sim": asdict(sim), "rule": asdict(BaselineConfig())}))
+
+
+def changed_settings(recorded: dict[str, Any] | None, current: dict[str, Any]) -> list[str]:
+    """The settings of ``current`` that ``recorded`` (an :func:`environment_record`) holds with
+    another value, as ``"sim.soft_iterations 5 -> 20"``. A setting the record lacks is not
+    compared (it did not exist when the grasps were planned); no record: none."""
+    if recorded is None:
+        return []
+    out = []
+    for section, values in current.items():
+        old = recorded.get(section) or {}
+        out += [f"{section}.{k} {old[k]} -> {v}" for k, v in values.items() if k in old and old[k] != v]
+    return out
 
 
 def read_grasp_file(path: str | Path) -> dict[str, Any]:
@@ -121,5 +147,7 @@ def load_grasp_plan(manifest: str | Path) -> dict[str, StoredGrasps] | None:
         except (KeyError, TypeError, ValueError) as exc:
             raise GraspFileError(f"{path}: object '{oid}': {exc}") from exc
         if grasps:
-            plan[oid] = StoredGrasps(grasps, scores, np.asarray(e.extents, dtype=np.float64))
+            plan[oid] = StoredGrasps(
+                grasps, scores, np.asarray(e.extents, dtype=np.float64), rec.get("environment")
+            )
     return plan

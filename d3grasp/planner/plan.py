@@ -32,12 +32,13 @@ from d3grasp.envs.grasp_file import (
     GRASP_FILE_FORMAT,
     GRASP_FILE_VERSION,
     asset_sha256,
+    changed_settings,
     grasp_file_path,
     read_grasp_file,
 )
 from d3grasp.parallel import run_units
 from d3grasp.planner.candidates import CandidateConfig, candidates, collision_pieces, perturbed
-from d3grasp.planner.score import ScoringConfig, Trial, run_trials, trial_score
+from d3grasp.planner.score import ScoringConfig, Trial, run_trials, trial_environment, trial_score
 
 # Object displaced by (dx, dy) m and turned by dyaw rad from where the planner thinks it is: the
 # camera's localisation error class (5.6 mm mean, 11 mm p95 with noise; README, Perception).
@@ -160,6 +161,7 @@ def plan_unit(
                         "score": round(s, 4),
                         "trials": {"lift": 0, "disturb": 0, "of": 1},
                     }
+        out[oid]["environment"] = trial_environment(cfg.scoring)
     return out
 
 
@@ -203,6 +205,16 @@ def plan_grasps(
         elif (old_cfg := config_of_record(old.get("planner") or {})) is not None:
             earlier = (old_cfg, old["objects"])
     sha = {e.id: asset_sha256(resolve_asset_path(manifest, e)) for e in entries}
+    environment = trial_environment(cfg.scoring)
+
+    def current(rec: dict[str, Any] | None, oid: str) -> bool:
+        """A record measured on this asset under these simulation and rule settings."""
+        return (
+            rec is not None
+            and rec.get("asset_sha256") == sha[oid]
+            and not changed_settings(rec.get("environment"), environment)
+        )
+
     # Fixed groups of the whole selection in library order (rigid objects first: a FEM step costs
     # ~20x a rigid one, d3grasp.eval.evaluate.SOFT_COST, and the two kinds never share a group, so a
     # group of rigid objects runs at 5 solver iterations), whatever is planned already and
@@ -237,13 +249,12 @@ def plan_grasps(
         kept = 0
         for unit in units:
             recs = {e["id"]: old_objects.get(e["id"]) for e in unit}
-            current = all(r is not None and r.get("asset_sha256") == sha[i] for i, r in recs.items())
-            if current and same_trials(old_cfg, cfg, unit):
+            if all(current(r, i) for i, r in recs.items()) and same_trials(old_cfg, cfg, unit):
                 data["objects"].update(recs)
                 kept += len(unit)
         if kept:
             log(f"[plan-grasps] {kept} objects kept from the plan of other settings: the same trials")
-    done = {e.id for e in entries if data["objects"].get(e.id, {}).get("asset_sha256") == sha[e.id]}
+    done = {e.id for e in entries if current(data["objects"].get(e.id), e.id)}
     if done:
         log(f"[plan-grasps] {len(done)} of {len(entries)} planned already ({path.name})")
     units = [u for u in units if any(e["id"] not in done for e in u)]

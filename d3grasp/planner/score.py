@@ -11,6 +11,7 @@ planner thinks it is, so a grasp that holds only at one exact placement (a knife
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -29,6 +30,15 @@ class ScoringConfig:
     task: str = DEFAULT_TASK
     device: str = "cpu"
     seed: int = 0
+
+
+def trial_environment(cfg: ScoringConfig) -> dict[str, Any]:
+    """The simulation and rule settings the trials of ``cfg`` run under (its task's: the trials
+    override the schedule and randomisation only), as the grasp file records them."""
+    from d3grasp.envs.grasp_file import environment_record
+    from d3grasp.envs.registry import get_task
+
+    return environment_record(get_task(cfg.task).make_cfg().sim)
 
 
 @dataclass(frozen=True)
@@ -66,16 +76,20 @@ def run_trials(
         objects: dict[str, Any] = {"ids": tuple(t.object_id for t in chunk)}
         if manifest is not None:
             objects["manifest"] = str(manifest)
-        env = make_env(
-            cfg.task,
-            num_envs=len(chunk),
-            device=cfg.device,
-            seed=cfg.seed,
-            eval_mode=True,
-            objects=objects,
-            randomization={"enabled": False},
-            phases={"disturb_per_direction": cfg.push_seconds},
-        )
+        with warnings.catch_warnings():
+            # The trials place their own candidates (grasp_override below), not the stored grasps,
+            # so the settings those were planned under do not matter here.
+            warnings.filterwarnings("ignore", message="the grasps of .* planned under other settings")
+            env = make_env(
+                cfg.task,
+                num_envs=len(chunk),
+                device=cfg.device,
+                seed=cfg.seed,
+                eval_mode=True,
+                objects=objects,
+                randomization={"enabled": False},
+                phases={"disturb_per_direction": cfg.push_seconds},
+            )
         try:
             env.grasp_override = [t.grasp for t in chunk]
             env.reset_all()

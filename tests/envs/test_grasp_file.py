@@ -12,10 +12,13 @@ import numpy as np
 import pytest
 
 from d3grasp.authoring.manifest import read_manifest
+from d3grasp.envs.config import SimConfig
 from d3grasp.envs.grasp_file import (
     GraspFileError,
     StoredGrasps,
     asset_sha256,
+    changed_settings,
+    environment_record,
     grasp_file_path,
     load_grasp_plan,
 )
@@ -129,6 +132,33 @@ def test_the_environment_places_the_stored_grasp(tmp_path: Path) -> None:
         env.close()
 
 
+def test_changed_settings_name_what_differs() -> None:
+    current = {"sim": {"iterations": 5, "soft_iterations": 20}, "rule": {"squeeze": 0.1}}
+    assert changed_settings(None, current) == []  # planned before the file recorded settings
+    assert changed_settings(current, current) == []
+    old = {"sim": {"iterations": 5, "soft_iterations": 5}, "rule": {}}  # a rule setting not yet recorded
+    assert changed_settings(old, current) == ["sim.soft_iterations 5 -> 20"]
+    rec = environment_record(SimConfig())
+    assert rec["sim"]["substeps"] == SimConfig().substeps and "squeeze_deformable" in rec["rule"]
+
+
+def test_grasps_planned_under_other_settings_are_used_with_a_warning(tmp_path: Path) -> None:
+    from d3grasp.envs import make_env
+
+    manifest = _library(tmp_path)
+    data = _write_grasps(manifest, {"top": 2.0})
+    planned = environment_record(SimConfig())
+    planned["sim"]["iterations"] += 3
+    data["objects"][BOX]["environment"] = planned
+    grasp_file_path(manifest).write_text(json.dumps(data))
+    with pytest.warns(UserWarning, match=r"box_01\).*sim\.iterations 8 -> 5.*plan-grasps"):
+        env = make_env(num_envs=1, objects={"manifest": str(manifest), "ids": (BOX,)}, eval_mode=True)
+    try:
+        assert env.grasp_plan[BOX].environment == planned  # still used: the warning says why to replan
+    finally:
+        env.close()
+
+
 def test_the_shipped_library_has_a_current_plan_for_every_object() -> None:
     """grasps.json was planned on the committed asset files, rigid and soft: a changed asset must be
     replanned (``d3grasp-assets plan-grasps``), not silently left to the rule."""
@@ -136,3 +166,8 @@ def test_the_shipped_library_has_a_current_plan_for_every_object() -> None:
     assert plan is not None
     ids = [e.id for e in read_manifest(default_manifest())]
     assert sorted(set(ids) - set(plan)) == []
+    # Objects whose plan records its settings (the soft ones since 2026-12-04) were planned under
+    # today's: a change of SimConfig or BaselineConfig needs them replanned.
+    current = environment_record(SimConfig())
+    stale = {i: changed_settings(s.environment, current) for i, s in plan.items()}
+    assert {i: c for i, c in stale.items() if c} == {}

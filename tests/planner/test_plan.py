@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 from d3grasp.authoring.manifest import read_manifest
+from d3grasp.envs.baseline import BaselineConfig
+from d3grasp.envs.config import SimConfig
 from d3grasp.envs.grasp_file import grasp_file_path, load_grasp_plan, read_grasp_file
 from d3grasp.paths import default_manifest
 from d3grasp.planner.plan import PlannerConfig, config_of_record, plan_grasps, same_trials
@@ -47,6 +49,9 @@ def test_plan_a_box_in_simulation_and_resume(tmp_path: Path) -> None:
     data = read_grasp_file(path)
     rec = data["objects"][BOX]
     assert rec["candidates"] == 3 and rec["lifted_nominal"] >= 1
+    # The settings the trials ran under: the task's simulation settings and the rule's.
+    assert rec["environment"]["sim"] == json.loads(json.dumps(asdict(SimConfig())))
+    assert rec["environment"]["rule"] == json.loads(json.dumps(asdict(BaselineConfig())))
     lifted = {g: v for g, v in rec["grasps"].items() if v["trials"]["lift"] >= 1}
     assert lifted, rec  # a grasp validated in simulation: it lifted the box
     for v in lifted.values():
@@ -67,6 +72,14 @@ def test_plan_a_box_in_simulation_and_resume(tmp_path: Path) -> None:
     plan_grasps(manifest, cfg=cfg, progress=False, log=logs.append)
     assert json.loads(path.read_bytes())["objects"] == json.loads(before)["objects"]
     assert any("kept from the plan of other settings" in line for line in logs)
+    # A plan measured under other simulation settings is planned again, under these.
+    data = json.loads(before)
+    data["objects"][BOX]["environment"]["sim"]["substeps"] = 4
+    path.write_text(json.dumps(data))
+    logs.clear()
+    plan_grasps(manifest, cfg=cfg, progress=False, log=logs.append)
+    assert not any("planned already" in line for line in logs)
+    assert json.loads(path.read_bytes())["objects"][BOX]["environment"] == rec["environment"]
 
 
 def test_a_composite_is_replanned_when_its_candidates_change() -> None:
