@@ -129,6 +129,7 @@ def plan_unit(
     ]
     retry_records = run_trials(retries, manifest, cfg.scoring) if retries else []
     out: dict[str, dict[str, Any]] = {e["id"]: {"grasps": {}} for e in entries}
+    environment = trial_environment(cfg.scoring)  # the same for every object of the unit
     n = len(PERTURBATIONS)
     for k, (s0, t, r0) in enumerate(finalists):
         rs = [r0, *retry_records[k * n : (k + 1) * n]]
@@ -161,7 +162,7 @@ def plan_unit(
                         "score": round(s, 4),
                         "trials": {"lift": 0, "disturb": 0, "of": 1},
                     }
-        out[oid]["environment"] = trial_environment(cfg.scoring)
+        out[oid]["environment"] = environment
     return out
 
 

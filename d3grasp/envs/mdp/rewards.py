@@ -93,12 +93,11 @@ def compute_rewards(env: GraspEnv, obj_pos, obj_lin, obj_ang, finite) -> torch.T
     r["eps_bar"][:] = (
         sensors.soft_scalar(sensors.strain_buf.object_eps) if sensors.strain_layout is not None else 0.0
     )
-    nodes = torch.zeros(env.num_envs, device=env.torch_device)
-    if sensors.strain_layout is not None:
-        nodes[torch.as_tensor(sensors.soft_worlds, device=nodes.device)] = torch.as_tensor(
-            sensors.strain_layout.node_counts, dtype=torch.float32, device=nodes.device
-        )
-    r["node_count"][:] = nodes
+    r["node_count"][:] = (
+        sensors.soft_scalar(sensors.strain_layout.object_node_count)
+        if sensors.strain_layout is not None
+        else 0.0
+    )
     # Rise above the resting height, counted from the lift phase on (the kernel clamps it).
     lifting = env.phase_of(env.episode_length_buf) >= PHASES.index("lift")
     rise = torch.nan_to_num(obj_pos[:, 2] - env.object_start[:, 2])
