@@ -328,7 +328,7 @@ class GraspEnv:
         # The push tests an object the hand holds: once it has failed the lift or left the grip under
         # a push its test is over and the push stops. Pushed on, a lost 1.5 g sponge (sponge_cube_s)
         # reached kilometres in the remaining pushes and the simulation broke (measured).
-        push = self.script.disturbance(t + 1, self.phase_of(t + 1), self.disturb_order)
+        push = self.script.disturbance(t + 1, self.disturb_order)
         self.t_object_force[:] = push * (self.lift_ok & self.disturb_ok)[:, None]
 
         self._launch_step()

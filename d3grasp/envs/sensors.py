@@ -152,10 +152,9 @@ class Sensors:
         """Every world's object position, orientation (xyzw), linear and angular velocity (W, ...):
         the body's for a rigid object (from the state's ``body_q`` and ``body_qd`` views), the
         deformable pose's for a soft one."""
-        pos = body_q[object_body, :3].clone()
-        quat = body_q[object_body, 3:7].clone()
-        lin = body_qd[object_body, :3].clone()
-        ang = body_qd[object_body, 3:6].clone()
+        # Indexing by a tensor copies: the views of the copies below never alias the state.
+        q, qd = body_q[object_body], body_qd[object_body]
+        pos, quat, lin, ang = q[:, :3], q[:, 3:7], qd[:, :3], qd[:, 3:6]
         if self.strain_layout is not None:
             sw = self.t_soft_worlds
             for out, view in zip((pos, quat, lin, ang), self.t_pose, strict=True):

@@ -10,7 +10,6 @@ hand-object distances, strain and the deformable rotation's sigma, material, tru
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -50,17 +49,9 @@ def action_history(env: GraspEnv) -> torch.Tensor:
 
 
 def episode_clock(env: GraspEnv) -> torch.Tensor:
-    """t / T, sin(2 pi t / T), cos(2 pi t / T) (the paper's t_i)."""
-    t = env.episode_length_buf.float()
-    T = float(env.max_episode_length)
-    return torch.cat(
-        [
-            (t / T)[:, None],
-            torch.sin(2.0 * math.pi * t / T)[:, None],
-            torch.cos(2.0 * math.pi * t / T)[:, None],
-        ],
-        dim=-1,
-    )
+    """t / T, sin(2 pi t / T), cos(2 pi t / T) (the paper's t_i; rows of the script's table)."""
+    script = env.script
+    return script.tables(env.torch_device).clock[script.row(env.episode_length_buf)]
 
 
 def grasp_type(env: GraspEnv) -> torch.Tensor:

@@ -115,15 +115,16 @@ def _update_metrics(env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor, touch
     sensors = env.sensors
     if sensors.strain_layout is not None:
         env.max_strain = torch.maximum(env.max_strain, sensors.soft_scalar(sensors.strain_buf.object_eps))
+    tab, row = script.tables(t.device), script.row(t)
     # s_grasp: when the lift starts, a thumb pad and an opposing finger pad touch the object.
-    env.s_grasp = torch.where(t == env.lift_start, thumb_opposed(touching), env.s_grasp)
-    env.pads_at_lift = torch.where((t == env.lift_start)[:, None], touching, env.pads_at_lift)
+    at_lift = t == env.lift_start
+    env.s_grasp = torch.where(at_lift, thumb_opposed(touching), env.s_grasp)
+    env.pads_at_lift = torch.where(at_lift[:, None], touching, env.pads_at_lift)
     env.pads_at_hold = torch.where((t == script.phase_start["hold"])[:, None], touching, env.pads_at_hold)
     lifting = (t >= env.lift_start) & (t <= script.phase_start["hold"])
     env.max_rise = torch.where(lifting, torch.maximum(env.max_rise, rise), env.max_rise)
     # s_lift: raised by lift_height (within tolerance) through the whole hold phase.
-    in_hold = (t > script.phase_start["hold"]) & (t <= script.phase_start["disturb"])
-    low = in_hold & (rise < ph.lift_height - LIFT_TOLERANCE) & env.lift_ok
+    low = tab.in_hold_score[row] & (rise < ph.lift_height - LIFT_TOLERANCE) & env.lift_ok
     if low.any():
         # Down at the first step of the hold: it never got up (or slid out on the way); later: dropped.
         first = t == script.phase_start["hold"] + 1
@@ -135,10 +136,8 @@ def _update_metrics(env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor, touch
     env.lift_ok &= ~low
     # s_disturb: under each push, object motion relative to the palm below the tolerance.
     rel = obj_pos - palm
-    k_in = (t - script.phase_start["disturb"] - 1).clamp(min=0) % script.steps_per_push
-    in_dist = (t > script.phase_start["disturb"]) & (t <= script.phase_start["release"])
-    start_push = in_dist & (k_in == 0)
-    env.push_ref = torch.where(start_push[:, None], rel, env.push_ref)
+    in_dist = tab.in_push_score[row]
+    env.push_ref = torch.where(tab.push_started[row][:, None], rel, env.push_ref)
     moved = torch.linalg.norm(rel - env.push_ref, dim=-1)
     env.max_push_motion = torch.where(in_dist, torch.maximum(env.max_push_motion, moved), env.max_push_motion)
     lost = in_dist & (moved > DISTURB_TOLERANCE) & env.disturb_ok & env.lift_ok
