@@ -198,6 +198,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.env_factory,
         args.device,
         torch_threads=args.torch_threads,
+        rank_layouts=args.rank_worlds,
+        overrides=args.set,
+        rank_overrides=args.rank_set,
     )
     return 0
 
@@ -214,6 +217,18 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--torch_threads", type=int, default=1, help="torch threads per process (default 1)")
     p.add_argument("--env_factory", default=None, help="advanced: 'module:function' building the VecEnv")
+    p.add_argument(
+        "--rank_worlds",
+        type=int,
+        nargs="+",
+        action="append",
+        default=[],
+        metavar="N",
+        help="worlds per rank, one count per rank (repeat the flag for more layouts; replaces --worlds "
+        "and --procs), e.g. 96 4 with --rank_set for the shipped recipe's rigid and soft ranks",
+    )
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="passed on to training")
+    p.add_argument("--rank_set", action="append", default=[], metavar="RANK:KEY=VALUE", help="passed on too")
     p.set_defaults(func=_cmd_train)
 
 
