@@ -213,7 +213,7 @@ def _restart_state(env: GraspEnv, ids: np.ndarray, arrays: ModelArrays) -> None:
         arrays.joint_q[q_idx], dtype=torch.float32, device=dev
     )
     dof_idx = np.concatenate([np.concatenate([lay.root_dof[w], lay.finger_dof[w]]) for w in ids])
-    env.t_joint_qd[torch.as_tensor(dof_idx, dtype=torch.long)] = 0.0
+    env.t_joint_qd[torch.as_tensor(dof_idx, dtype=torch.long, device=dev)] = 0.0
     bqd = env.state_0.body_qd.numpy()
     bqd[np.isin(model.body_world.numpy(), ids)] = 0.0
     for st in states:
