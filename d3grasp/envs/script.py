@@ -46,6 +46,7 @@ class ScheduleTables:
     in_hold_score: torch.Tensor  # bool: a step whose result s_lift's hold check scores
     clock: torch.Tensor  # (steps, 3): t / T, sin(2 pi t / T), cos(2 pi t / T)
     lift_rise: torch.Tensor  # m the palm has risen d steps into its lift (d clamped to [0, lift])
+    push_dirs: torch.Tensor  # (7, 3): the six push directions by slot, and a zero row for slot 6
 
 
 class EpisodeScript:
@@ -68,7 +69,6 @@ class EpisodeScript:
         self.phase_start = {p: int(bounds[i]) for i, p in enumerate(PHASES)}
         self.max_episode_length = int(bounds[-1])
         self._tables: dict[torch.device, ScheduleTables] = {}
-        self._push_dirs: dict[torch.device, torch.Tensor] = {}
 
     def tables(self, device: torch.device) -> ScheduleTables:
         """The :class:`ScheduleTables` on ``device``, made once (the formulas of the schedule live
@@ -90,6 +90,7 @@ class EpisodeScript:
             dl = torch.arange(self.phase_steps["lift"] + 1, device=device)
             tl = dl.float() / self.phase_steps["lift"]
             s_lift = 0.5 - 0.5 * torch.cos(math.pi * tl.clamp(0.0, 1.0))
+            dirs = torch.as_tensor(DISTURB_DIRECTIONS, device=device)
             self._tables[device] = ScheduleTables(
                 phase=torch.bucketize(t, starts, right=True),
                 approach_back=(1.0 - s_app) * ph.pregrasp_clearance,
@@ -101,10 +102,8 @@ class EpisodeScript:
                     [t / T, torch.sin(2.0 * math.pi * t / T), torch.cos(2.0 * math.pi * t / T)], dim=-1
                 ),
                 lift_rise=ph.lift_height * s_lift,
+                push_dirs=torch.cat([dirs, torch.zeros(1, 3, device=device)]),
             )
-            # The push directions, and a zero row for slot 6 (no push).
-            dirs = torch.as_tensor(DISTURB_DIRECTIONS, device=device)
-            self._push_dirs[device] = torch.cat([dirs, torch.zeros(1, 3, device=device)])
         return self._tables[device]
 
     def row(self, t: torch.Tensor) -> torch.Tensor:
@@ -138,7 +137,8 @@ class EpisodeScript:
     def disturbance(self, t: torch.Tensor, disturb_order: torch.Tensor) -> torch.Tensor:
         """The push on every world's object (W, 3) at step ``t``: the episode's k-th direction
         (``disturb_order`` (W, 6)) during the k-th push of the disturb phase, zero outside it."""
-        slot = self.tables(t.device).push_slot[self.row(t)]
+        tab = self.tables(t.device)
+        slot = tab.push_slot[self.row(t)]
         # Slot 6 (no push) reads the zero row appended to the directions.
         order = torch.cat([disturb_order, torch.full_like(disturb_order[:, :1], 6)], dim=1)
-        return self._push_dirs[t.device][order.gather(1, slot[:, None])[:, 0]] * self.cfg.disturb_force
+        return tab.push_dirs[order.gather(1, slot[:, None])[:, 0]] * self.cfg.disturb_force
