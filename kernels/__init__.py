@@ -6,6 +6,7 @@ Submodules (import them directly; nothing here imports Warp):
 - :mod:`d3grasp.kernels.strain`   -- Green-Lagrange max principal strain per tet/node/object, sigma.
 - :mod:`d3grasp.kernels.rotation` -- adaptive (sigma-selected) object rotation, CoM velocity.
 - :mod:`d3grasp.kernels.rewards`  -- every reward term of the paper for all worlds.
+- :mod:`d3grasp.kernels.scoring`  -- the success metrics, failure causes and terminations per world.
 """
 
-__all__ = ["rewards", "rotation", "strain", "tactile"]
+__all__ = ["rewards", "rotation", "scoring", "strain", "tactile"]

@@ -11,8 +11,9 @@ This file wires the parts together; each lives in a file of its own:
   terminations, and the reset with its randomisation.
 
 One control step (60 Hz) runs on the device, captured as one Warp graph: the physics substeps,
-then the sensors. The host side (torch) maps actions to joint targets, commands the palm, builds
-the observation groups, scores the success metrics and resets finished worlds.
+then the sensors. The reward terms and the success scoring are Warp kernels too, each replayed as a
+graph of its own. The host side (torch) maps actions to joint targets, commands the palm, fills
+the kernels' inputs, builds the observation groups and resets finished worlds.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from tensordict import TensorDict
 
 from d3grasp.authoring.hand import quat_xyzw_to_matrix
 from d3grasp.authoring.manifest import resolve_asset_path
-from d3grasp.dexhand13 import ABDUCTION_JOINTS, NUM_FINGER_JOINTS, NUM_FINGERS, NUM_PADS
+from d3grasp.dexhand13 import ABDUCTION_JOINTS, NUM_FINGER_JOINTS, NUM_FINGERS
 from d3grasp.envs.baseline import RuleBasedController, rest_targets
 from d3grasp.envs.config import ACTION_MODES, GRASP_SOURCES, PERCEPTION_MODES, GraspEnvConfig
 from d3grasp.envs.grasp_file import changed_settings, environment_record, load_grasp_plan
@@ -186,23 +187,8 @@ class GraspEnv:
         self.anchor_rot = torch.as_tensor(quat_xyzw_to_matrix(HAND_ANCHOR_QUAT), dtype=f32, device=tdev)
         self.object_start = zeros(W, 3)
         self.disturb_order = zeros(W, 6, dtype=torch.long)
-        self.push_ref = zeros(W, 3)
-        # Touch-timed lift: the step each world's lift starts (the grasp phase's end unless the pads
-        # show a grasp first) and how many steps in a row they have shown one.
-        self.lift_start = torch.full((W,), self.phase_start["lift"], dtype=torch.long, device=tdev)
-        self.touch_steps = zeros(W, dtype=torch.long)
-        self.max_rise = zeros(W)
-        self.max_push_motion = zeros(W)  # m: the most the object moved against the palm in a push
-        # Per-episode outcome bookkeeping.
-        self.s_grasp = zeros(W, dtype=torch.bool)
-        # Which pads touch the object (> GRASP_CONTACT_FORCE) when the lift starts and when it ends.
-        self.pads_at_lift = zeros(W, NUM_PADS, dtype=torch.bool)
-        self.pads_at_hold = zeros(W, NUM_PADS, dtype=torch.bool)
-        self.lift_ok = torch.ones(W, dtype=torch.bool, device=tdev)
-        self.disturb_ok = torch.ones(W, dtype=torch.bool, device=tdev)
         self.max_strain = zeros(W)
         self.episode_return = zeros(W)
-        self.failure = ["" for _ in range(W)]
         es = self.world_entries
         self.object_soft = torch.as_tensor([e.kind == "deformable" for e in es], device=tdev)
         self.object_mass = torch.as_tensor([e.mass for e in es], dtype=f32, device=tdev)
@@ -214,8 +200,10 @@ class GraspEnv:
             dtype=f32,
             device=tdev,
         )
-        self.nonfinite_resets = 0
         self._obs: TensorDict | None = None
+        # The scoring's state (lift start, s_grasp, s_lift, s_disturb, failure causes, ...) as torch
+        # views of the scoring kernel's buffers: written in place only.
+        terminations.allocate(self)
 
     # ------------------------------------------------------------------------------------------
     # The parts, by the names the rest of the package reads
@@ -248,6 +236,11 @@ class GraspEnv:
     @property
     def strain_layout(self):
         return self.sensors.strain_layout
+
+    @property
+    def nonfinite_resets(self) -> int:
+        """Worlds reset for a non-finite state since the environment was made."""
+        return int(self.t_nonfinite_count[0])
 
     def phase_of(self, t: torch.Tensor) -> torch.Tensor:
         """Phase index (into :data:`PHASES`) of every world at step ``t`` (its own lift start)."""

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 import warp as wp
+from d3grasp.kernels import scoring as sk
 
 from d3grasp.dexhand13 import NUM_PADS, OPPOSING_PADS, PAD_NAMES, THUMB_PADS
 from d3grasp.envs.config import GraspEnvConfig
@@ -20,38 +21,33 @@ LIFT = 0.1
 
 
 def _env(num_worlds: int, lift_on_touch: bool = True) -> SimpleNamespace:
+    """The parts of an environment the scoring reads, with the scoring's buffers allocated on them."""
     cfg = GraspEnvConfig(eval_mode=True)
     cfg.phases.disturb_per_direction = 0.1  # 6 steps a push
     cfg.phases.lift_on_touch = lift_on_touch
     script = EpisodeScript(cfg.phases, cfg.sim.control_hz, eval_mode=True)
     W = num_worlds
-    return SimpleNamespace(
+    dev = wp.get_device("cpu")
+    env = SimpleNamespace(
         cfg=cfg,
         script=script,
         dt=1.0 / cfg.sim.control_hz,
         phase_start=script.phase_start,
         max_episode_length=script.max_episode_length,
         num_envs=W,
-        lift_start=torch.full((W,), script.phase_start["lift"], dtype=torch.long),
-        touch_steps=torch.zeros(W, dtype=torch.long),
-        t_pad_force_object=torch.zeros(W, NUM_PADS, 3),
-        t_pad_force_true=torch.zeros(W, NUM_PADS, 3),
+        wp_device=dev,
+        torch_device=torch.device("cpu"),
+        # The pads' forces from the object and in all, and the bodies' poses (world w's palm: body w).
+        sensors=SimpleNamespace(
+            pad_force_object=wp.zeros((W, NUM_PADS), dtype=wp.vec3, device=dev),
+            pad_force_true=wp.zeros((W, NUM_PADS), dtype=wp.vec3, device=dev),
+            strain_layout=None,
+        ),
+        physics=SimpleNamespace(state_0=SimpleNamespace(body_q=wp.zeros(W, dtype=wp.transform, device=dev))),
+        layout=SimpleNamespace(palm_body=np.arange(W)),
         residual_base=None,
-        t_body_q=torch.zeros(W, 7),  # the bodies' poses (position, quaternion xyzw)
-        i_palm=torch.arange(W),
         object_start=torch.zeros(W, 3),
-        sensors=SimpleNamespace(strain_layout=None),
-        s_grasp=torch.zeros(W, dtype=torch.bool),
-        pads_at_lift=torch.zeros(W, NUM_PADS, dtype=torch.bool),
-        pads_at_hold=torch.zeros(W, NUM_PADS, dtype=torch.bool),
-        lift_ok=torch.ones(W, dtype=torch.bool),
-        disturb_ok=torch.ones(W, dtype=torch.bool),
-        max_rise=torch.zeros(W),
-        max_push_motion=torch.zeros(W),
-        push_ref=torch.zeros(W, 3),
         disturb_order=torch.arange(6).expand(W, 6).clone(),
-        failure=["" for _ in range(W)],
-        nonfinite_resets=0,
         episode_length_buf=torch.zeros(W, dtype=torch.long),
         world_entries=[
             SimpleNamespace(id=f"o{w}", kind="rigid", family="box", size_bin="small") for w in range(W)
@@ -61,6 +57,8 @@ def _env(num_worlds: int, lift_on_touch: bool = True) -> SimpleNamespace:
         episode_return=torch.zeros(W),
         loc_records=[{} for _ in range(W)],
     )
+    terminations.allocate(env)
+    return env
 
 
 def _grasp_forces(on_table: bool = False) -> torch.Tensor:
@@ -74,16 +72,16 @@ def _grasp_forces(on_table: bool = False) -> torch.Tensor:
 def _run(env, object_path, palm_path, object_pads, table_pads=None):
     """Step the scoring through a whole episode; ``*_path(t)`` give (W, 3) positions at step t."""
     W = env.num_envs
+    f_object = wp.to_torch(env.sensors.pad_force_object)
+    f_true = wp.to_torch(env.sensors.pad_force_true)
+    body_q = wp.to_torch(env.physics.state_0.body_q)
     for t in range(1, env.max_episode_length + 1):
         tt = torch.full((W,), t, dtype=torch.long)
-        env.t_pad_force_object = object_pads(t)
-        env.t_pad_force_true = object_pads(t) + (table_pads(t) if table_pads else 0.0)
-        palm = palm_path(t).numpy()
-        env.t_body_q = torch.as_tensor(
-            np.concatenate([palm, np.tile([0, 0, 0, 1.0], (W, 1))], axis=1), dtype=torch.float32
-        )
-        obj = object_path(t)
-        terminations.score(env, tt, obj, torch.ones(W, dtype=torch.bool))
+        f_object[:] = object_pads(t)
+        f_true[:] = object_pads(t) + (table_pads(t) if table_pads else 0.0)
+        body_q[:, :3] = palm_path(t)
+        body_q[:, 6] = 1.0
+        terminations.score(env, tt, object_path(t), torch.ones(W, dtype=torch.bool))
         env.episode_length_buf = tt
     return terminations.episode_records(env, torch.arange(W))
 
@@ -168,13 +166,27 @@ def test_lift_starts_once_the_pads_show_a_grasp_for_the_settle_time() -> None:
     assert phases.tolist() == [2, 1]  # lift, grasp
 
 
-def test_pad_grasp_needs_the_thumb_and_an_opposing_pad() -> None:
+def test_s_grasp_needs_the_thumb_and_an_opposing_pad() -> None:
+    env = _env(4, lift_on_touch=False)
     f = torch.zeros(4, NUM_PADS, 3)
     f[0] = _grasp_forces()
     f[1, THUMB_PADS[0], 0] = 5.0  # thumb alone
     f[2, OPPOSING_PADS[0], 1] = 5.0  # finger alone
     f[3] = 0.1 * _grasp_forces()  # 0.2 N: below the contact force
-    assert terminations.pad_grasp(f).tolist() == [True, False, False, False]
+    zero = lambda t: torch.zeros(4, 3)  # noqa: E731
+    recs = _run(env, zero, zero, lambda t: f)
+    assert [r["s_grasp"] for r in recs] == [True, False, False, False]
+
+
+def test_failure_codes_name_the_failures() -> None:
+    for name, code in sk.FAILURE_CODES.items():
+        label = terminations.failure_label(code)
+        assert label.startswith(name), (name, label)
+    assert [terminations.failure_label(sk.LOST_UNDER_PUSH + k) for k in range(6)] == [
+        f"lost under a push ({d})" for d in ("+x", "-x", "+y", "-y", "+z", "-z")
+    ]
+    assert terminations.failure_label(0) == ""
+    assert len(terminations.FAILURES) == sk.NON_FINITE
 
 
 def test_records_name_the_pads_touching_at_the_lift_start_and_end() -> None:

@@ -194,7 +194,6 @@ def _randomise_dynamics(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
         env.disturb_order[w] = torch.arange(6)
     else:
         env.disturb_order[w] = torch.as_tensor(env.rng.permutation(6))
-    env.failure[w] = ""
 
 
 def _restart_state(env: GraspEnv, ids: np.ndarray, arrays: ModelArrays) -> None:
@@ -248,6 +247,7 @@ def _reset_bookkeeping(env: GraspEnv, env_ids: torch.Tensor) -> None:
     env.max_push_motion[env_ids] = 0.0
     env.lift_ok[env_ids] = True
     env.disturb_ok[env_ids] = True
+    env.failure_code[env_ids] = 0
     env.max_strain[env_ids] = 0.0
     env.episode_return[env_ids] = 0.0
 
