@@ -7,6 +7,7 @@ Submodules (import them directly; nothing here imports Warp):
 - :mod:`d3grasp.kernels.rotation` -- adaptive (sigma-selected) object rotation, CoM velocity.
 - :mod:`d3grasp.kernels.rewards`  -- every reward term of the paper for all worlds.
 - :mod:`d3grasp.kernels.scoring`  -- the success metrics, failure causes and terminations per world.
+- :mod:`d3grasp.kernels.observations` -- the policy's and the critic's observation groups.
 """
 
-__all__ = ["rewards", "rotation", "scoring", "strain", "tactile"]
+__all__ = ["observations", "rewards", "rotation", "scoring", "strain", "tactile"]

@@ -11,9 +11,9 @@ This file wires the parts together; each lives in a file of its own:
   terminations, and the reset with its randomisation.
 
 One control step (60 Hz) runs on the device, captured as one Warp graph: the physics substeps,
-then the sensors. The reward terms and the success scoring are Warp kernels too, each replayed as a
-graph of its own. The host side (torch) maps actions to joint targets, commands the palm, fills
-the kernels' inputs, builds the observation groups and resets finished worlds.
+then the sensors. The reward terms, the success scoring and the observation groups are Warp kernels
+too, each replayed as a graph of its own. The host side (torch) maps actions to joint targets,
+commands the palm, fills the kernels' inputs and resets finished worlds.
 """
 
 from __future__ import annotations
@@ -93,6 +93,7 @@ class GraspEnv:
         self.residual_base = None
         if cfg.action_mode in ("residual", "synergy"):
             self.residual_base = RuleBasedController(self)
+        observations.allocate(self)
         # Place every world before the first (uncaptured) step, so nothing starts interpenetrating.
         self.reset_all()
         self.physics.capture(self._control_step)

@@ -16,7 +16,7 @@ from d3grasp.kernels import scoring as sk
 
 from d3grasp.dexhand13 import NUM_PADS
 from d3grasp.envs.config import PhaseConfig
-from d3grasp.envs.mdp.terminations import pad_roles
+from d3grasp.envs.mdp.terminations import pad_roles, score_params
 from d3grasp.envs.script import EpisodeScript
 
 wp.config.log_level = wp.LOG_WARNING
@@ -25,16 +25,9 @@ GRID = 1.0 / 128.0
 
 
 def _params(script: EpisodeScript, eval_mode: bool, lift_on_touch: bool) -> sk.ScoreParams:
-    prm = sk.ScoreParams()
-    prm.grasp_start = script.phase_start["grasp"]
-    prm.hold_start = script.phase_start["hold"]
-    prm.disturb_start = script.phase_start["disturb"]
-    prm.steps_per_push = script.steps_per_push
-    prm.max_episode_length = script.max_episode_length
+    phases = PhaseConfig(lift_on_touch=lift_on_touch, lift_height=0.1)
+    prm = score_params(script, phases, 1.0 / 60.0, eval_mode)
     prm.settle_steps = 3
-    prm.lift_on_touch = int(lift_on_touch)
-    prm.eval_mode = int(eval_mode)
-    prm.lift_height = 0.1
     return prm
 
 

@@ -10,7 +10,7 @@ import torch
 import warp as wp
 
 from d3grasp.dexhand13 import NUM_FINGER_JOINTS, NUM_LINKS, NUM_PADS
-from d3grasp.envs.physics import capture_graph
+from d3grasp.envs.physics import Replayed
 from d3grasp.envs.scene import OBJECT_SOFT
 from d3grasp.envs.sensors import wp_view
 from d3grasp.kernels import rewards as rk
@@ -70,10 +70,9 @@ def allocate(env: GraspEnv) -> None:
     env.t_residual_term = torch.zeros(W, device=env.torch_device)  # residual_penalty's, when on
     # The five reward launches replayed as one graph (the buffers above never move): a launch from
     # Python costs ~0.15 ms on the CPU, the kernels at a few worlds microseconds.
-    env.reward_graph = None
-    if env.cfg.sim.use_graph:
-        rk.compute_rewards(env.rw_in, env.rw_out)  # loads the kernels' module before the capture
-        env.reward_graph = capture_graph(lambda: rk.compute_rewards(env.rw_in, env.rw_out), dev)
+    env.reward_launch = Replayed(
+        lambda: rk.compute_rewards(env.rw_in, env.rw_out), [rk], dev, env.cfg.sim.use_graph
+    )
 
 
 def compute_rewards(env: GraspEnv, obj_pos, obj_lin, obj_ang, finite) -> torch.Tensor:
@@ -102,10 +101,7 @@ def compute_rewards(env: GraspEnv, obj_pos, obj_lin, obj_ang, finite) -> torch.T
     lifting = env.phase_of(env.episode_length_buf) >= PHASES.index("lift")
     rise = torch.nan_to_num(obj_pos[:, 2] - env.object_start[:, 2])
     r["object_rise"][:] = torch.where(lifting, rise, torch.zeros_like(rise))
-    if env.reward_graph is not None:
-        wp.capture_launch(env.reward_graph)
-    else:
-        rk.compute_rewards(env.rw_in, env.rw_out)
+    env.reward_launch()
     total = torch.nan_to_num(env.t_reward_total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
     if env.cfg.residual_penalty:
         env.t_residual_term[:] = residual_penalty(env)  # kept for the step's log (Reward/residual)

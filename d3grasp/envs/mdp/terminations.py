@@ -16,8 +16,9 @@ import torch
 import warp as wp
 
 from d3grasp.dexhand13 import NUM_PADS, OPPOSING_PADS, PAD_NAMES, THUMB_PADS
-from d3grasp.envs.physics import capture_graph
-from d3grasp.envs.script import DISTURB_NAMES
+from d3grasp.envs.config import PhaseConfig
+from d3grasp.envs.physics import Replayed
+from d3grasp.envs.script import DISTURB_NAMES, EpisodeScript
 from d3grasp.envs.sensors import wp_view
 from d3grasp.kernels import scoring as sk
 from d3grasp.kernels.scoring import (  # noqa: F401  (the thresholds, by their names here too)
@@ -88,21 +89,27 @@ _STATE_VIEWS = {
 }
 
 
-def allocate(env: GraspEnv) -> None:
-    """The scoring kernel's parameters, inputs and state, the state's torch views on ``env`` and the
-    launch captured as a graph. Reads the script, the sensors' pad forces, the state's body poses,
-    and ``env.object_start`` and ``env.disturb_order`` (which resets write in place)."""
-    W, dev, script, ph = env.num_envs, env.wp_device, env.script, env.cfg.phases
+def score_params(script: EpisodeScript, phases: PhaseConfig, dt: float, eval_mode: bool) -> sk.ScoreParams:
+    """The scoring kernel's parameters for an episode script and its phase settings."""
     prm = sk.ScoreParams()
     prm.grasp_start = script.phase_start["grasp"]
     prm.hold_start = script.phase_start["hold"]
     prm.disturb_start = script.phase_start["disturb"]
     prm.steps_per_push = script.steps_per_push
     prm.max_episode_length = script.max_episode_length
-    prm.settle_steps = max(1, round(ph.grasp_settle / env.dt))
-    prm.lift_on_touch = int(ph.lift_on_touch)
-    prm.eval_mode = int(env.cfg.eval_mode)
-    prm.lift_height = ph.lift_height
+    prm.settle_steps = max(1, round(phases.grasp_settle / dt))
+    prm.lift_on_touch = int(phases.lift_on_touch)
+    prm.eval_mode = int(eval_mode)
+    prm.lift_height = phases.lift_height
+    return prm
+
+
+def allocate(env: GraspEnv) -> None:
+    """The scoring kernel's parameters, inputs and state, the state's torch views on ``env`` and the
+    launch captured as a graph. Reads the script, the sensors' pad forces, the state's body poses,
+    and ``env.object_start`` and ``env.disturb_order`` (which resets write in place)."""
+    W, dev, script, ph = env.num_envs, env.wp_device, env.script, env.cfg.phases
+    prm = score_params(script, ph, env.dt, env.cfg.eval_mode)
     tab = script.tables(env.torch_device)
     env.score_params = prm
     env.score_schedule = sk.ScoreSchedule(
@@ -130,14 +137,12 @@ def allocate(env: GraspEnv) -> None:
     env.t_score_in = {
         name: wp_view(getattr(inp, name)) for name in ("t", "obj_pos", "finite", "rule_settled")
     }
-    env.score_graph = None
-    if env.cfg.sim.use_graph:
-        wp.load_module(sk, device=dev)  # a capture records launches, it does not load modules
-        env.score_graph = capture_graph(lambda: _launch(env), dev)
-
-
-def _launch(env: GraspEnv) -> None:
-    sk.score_step(env.score_params, env.score_schedule, env.score_inputs, env.score_state)
+    env.score_launch = Replayed(
+        lambda: sk.score_step(env.score_params, env.score_schedule, env.score_inputs, env.score_state),
+        [sk],
+        dev,
+        env.cfg.sim.use_graph,
+    )
 
 
 def score(
@@ -152,10 +157,7 @@ def score(
         # The rule runs inside the env (residual action modes): a hand closed as far as the object
         # lets it is ready to lift too (a hook or a palm grasp need not touch with the thumb's pads).
         i["rule_settled"].copy_(env.residual_base.settled())
-    if env.score_graph is not None:
-        wp.capture_launch(env.score_graph)
-    else:
-        _launch(env)
+    env.score_launch()
     sensors = env.sensors
     if sensors.strain_layout is not None:
         env.max_strain = torch.maximum(env.max_strain, sensors.soft_scalar(sensors.strain_buf.object_eps))
