@@ -81,8 +81,6 @@ class ScoreParams:
 
     grasp_start: int  # first step of the grasp phase
     hold_start: int  # first step of the hold phase
-    disturb_start: int  # first step of the disturb phase
-    steps_per_push: int
     max_episode_length: int
     settle_steps: int  # steps in a row of touch before a touch-timed lift starts
     lift_on_touch: int  # 1: touch times the lift
@@ -93,11 +91,13 @@ class ScoreParams:
 @dataclass
 class ScoreSchedule:
     """Read-only per-step and per-pad tables: the script's scoring windows by table row (bool, one row
-    per step up to ``max_episode_length + 1``) and each pad's role (int32)."""
+    per step up to ``max_episode_length + 1``), the push whose result a step scores (int32) and each
+    pad's role (int32)."""
 
     in_hold_score: wp.array
     in_push_score: wp.array
     push_started: wp.array
+    scored_push: wp.array
     pad_role: wp.array
 
 
@@ -194,6 +194,7 @@ def _score_kernel(
     in_hold_score: wp.array(dtype=wp.bool),
     in_push_score: wp.array(dtype=wp.bool),
     push_started: wp.array(dtype=wp.bool),
+    scored_push: wp.array(dtype=wp.int32),
     pad_role: wp.array(dtype=wp.int32),
     t_step: wp.array(dtype=wp.int64),
     obj_pos: wp.array(dtype=wp.vec3),
@@ -284,7 +285,7 @@ def _score_kernel(
         max_push_motion[w] = _nan_max(max_push_motion[w], moved)
         if moved > DISTURB_TOLERANCE:
             if disturb_ok[w] and lift_ok[w]:
-                k = wp.min(wp.max(t - prm.disturb_start - 1, 0) // prm.steps_per_push, 5)
+                k = scored_push[row]
                 _first_failure(failure, w, LOST_UNDER_PUSH + int(disturb_order[w, k]))
             disturb_ok[w] = False
 
@@ -323,6 +324,7 @@ def score_step(prm: ScoreParams, sched: ScoreSchedule, inp: ScoreInputs, state: 
             sched.in_hold_score,
             sched.in_push_score,
             sched.push_started,
+            sched.scored_push,
             sched.pad_role,
             inp.t,
             inp.obj_pos,
@@ -389,8 +391,7 @@ def score_step_numpy(
             in_push, np.maximum(s["max_push_motion"], moved), s["max_push_motion"]
         )
         far = in_push & (moved > DISTURB_TOLERANCE)
-    k = np.minimum(np.maximum(t - prm.disturb_start - 1, 0) // prm.steps_per_push, 5)
-    direction = inp["disturb_order"][np.arange(W), k]
+    direction = inp["disturb_order"][np.arange(W), sched["scored_push"][row]]
     _first_failure_numpy(s["failure"], far & s["disturb_ok"] & s["lift_ok"], LOST_UNDER_PUSH + direction)
     s["disturb_ok"] = s["disturb_ok"] & ~far
     with np.errstate(invalid="ignore"):

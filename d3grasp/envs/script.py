@@ -43,6 +43,7 @@ class ScheduleTables:
     push_slot: torch.Tensor  # long: the push under way (0-5), 6 outside the disturb phase
     push_started: torch.Tensor  # bool: the step after a push's first step (s_disturb's reference)
     in_push_score: torch.Tensor  # bool: a step whose result s_disturb scores (after the push began)
+    scored_push: torch.Tensor  # int32: the push (0-5) whose result a step's state shows (step t - 1's)
     in_hold_score: torch.Tensor  # bool: a step whose result s_lift's hold check scores
     clock: torch.Tensor  # (steps, 3): t / T, sin(2 pi t / T), cos(2 pi t / T)
     lift_rise: torch.Tensor  # m the palm has risen d steps into its lift (d clamped to [0, lift])
@@ -97,6 +98,7 @@ class EpisodeScript:
                 push_slot=torch.where(in_disturb, k, 6),
                 push_started=in_push_score & (k_in == 0),
                 in_push_score=in_push_score,
+                scored_push=((t - d0 - 1).clamp(min=0) // self.steps_per_push).clamp(max=5).to(torch.int32),
                 in_hold_score=(t > hold0) & (t <= d0),
                 clock=torch.stack(
                     [t / T, torch.sin(2.0 * math.pi * t / T), torch.cos(2.0 * math.pi * t / T)], dim=-1

@@ -101,3 +101,6 @@ def test_scoring_windows_follow_the_schedule() -> None:
     first = in_push & ((t - s["disturb"] - 1) % per_push == 0)
     np.testing.assert_array_equal(tab.push_started.numpy(), first)
     assert int(tab.push_started.sum()) == 6
+    # The push a scored step's state shows: the one step t - 1 ran under.
+    scored = tab.scored_push.numpy()[in_push]
+    np.testing.assert_array_equal(scored, np.repeat(np.arange(6), per_push))

@@ -121,9 +121,10 @@ def test_kernel_matches_numpy_twin(eval_mode: bool, lift_on_touch: bool) -> None
         "in_hold_score": tab.in_hold_score.numpy(),
         "in_push_score": tab.in_push_score.numpy(),
         "push_started": tab.push_started.numpy(),
+        "scored_push": tab.scored_push.numpy(),
         "pad_role": pad_roles(),
     }
-    dtypes = {"pad_role": wp.int32}
+    dtypes = {"pad_role": wp.int32, "scored_push": wp.int32}
     sched = sk.ScoreSchedule(**{k: wp.array(v, dtype=dtypes.get(k, wp.bool)) for k, v in sched_np.items()})
     state = sk.ScoreState.allocate(W, NUM_PADS, script.phase_start["lift"])
     twin = state.numpy()

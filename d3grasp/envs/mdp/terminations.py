@@ -94,8 +94,6 @@ def score_params(script: EpisodeScript, phases: PhaseConfig, dt: float, eval_mod
     prm = sk.ScoreParams()
     prm.grasp_start = script.phase_start["grasp"]
     prm.hold_start = script.phase_start["hold"]
-    prm.disturb_start = script.phase_start["disturb"]
-    prm.steps_per_push = script.steps_per_push
     prm.max_episode_length = script.max_episode_length
     prm.settle_steps = max(1, round(phases.grasp_settle / dt))
     prm.lift_on_touch = int(phases.lift_on_touch)
@@ -116,6 +114,7 @@ def allocate(env: GraspEnv) -> None:
         in_hold_score=wp.from_torch(tab.in_hold_score),
         in_push_score=wp.from_torch(tab.in_push_score),
         push_started=wp.from_torch(tab.push_started),
+        scored_push=wp.from_torch(tab.scored_push),
         pad_role=wp.array(pad_roles(), dtype=wp.int32, device=dev),
     )
     env.score_inputs = sk.ScoreInputs(
