@@ -14,9 +14,9 @@ velocity, the hand links' distances to it (x ``link_distance_scale``), its strai
 and the true pad forces. A rigid object's state is its body's; a soft object's, the deformable pose's
 (its slot in the soft objects' arrays, -1 for a rigid world).
 
-Non-finite values become 0 and +-the largest float32, where the environment's torch terms
-(``d3grasp.envs.mdp.observations``, the reference this kernel is tested against) apply
-``torch.nan_to_num``.
+Non-finite values become 0 and +-the largest float32 (``world_state.finite``), where the
+environment's torch terms (``d3grasp.envs.mdp.observations``, the reference this kernel is tested
+against) apply ``torch.nan_to_num``.
 """
 
 from __future__ import annotations
@@ -24,10 +24,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import warp as wp
+from d3grasp.kernels.world_state import finite, object_state, phase_of
 
 __all__ = ["ObservationInputs", "ObservationParams", "compute_observations"]
-
-FLOAT32_MAX = wp.constant(3.4028234663852886e38)
 
 
 @wp.struct
@@ -100,18 +99,6 @@ class ObservationInputs:
 
 
 @wp.func
-def _finite(x: float) -> float:
-    """torch.nan_to_num: NaN -> 0, +-inf -> +-the largest float32."""
-    if wp.isnan(x):
-        return 0.0
-    if wp.isinf(x):
-        if x > 0.0:
-            return FLOAT32_MAX
-        return -FLOAT32_MAX
-    return x
-
-
-@wp.func
 def _normalized(q: float, lo: float, hi: float) -> float:
     return 2.0 * (q - lo) / (hi - lo) - 1.0
 
@@ -165,97 +152,88 @@ def _observation_kernel(
         for p in range(num_pads):
             f = pad_force[w, p]
             for k in range(3):
-                policy[w, o] = _finite(_finite(f[k]) / prm.pad_force_per_unit)
+                policy[w, o] = finite(finite(f[k]) / prm.pad_force_per_unit)
                 o += 1
         for p in range(num_pads):
-            policy[w, o] = _finite(pad_contact[w, p])
+            policy[w, o] = finite(pad_contact[w, p])
             o += 1
     for j in range(num_joints):
-        q = _finite(joint_q[finger_q[w, j]])
-        policy[w, o] = _finite(_normalized(q, lower[j], upper[j]))
+        q = finite(joint_q[finger_q[w, j]])
+        policy[w, o] = finite(_normalized(q, lower[j], upper[j]))
         o += 1
     for j in range(num_joints):
-        policy[w, o] = _finite(prm.joint_vel_scale * _finite(joint_qd[finger_dof[w, j]]))
+        policy[w, o] = finite(prm.joint_vel_scale * finite(joint_qd[finger_dof[w, j]]))
         o += 1
     for k in range(action_hist.shape[1]):
-        policy[w, o] = _finite(action_hist[w, k])
+        policy[w, o] = finite(action_hist[w, k])
         o += 1
     t = int(t_step[w])
     row = wp.clamp(t, 0, prm.last_row)
     for k in range(3):
-        policy[w, o] = _finite(clock[row, k])
+        policy[w, o] = finite(clock[row, k])
         o += 1
     g = int(grasp_id[w])
     for k in range(prm.num_grasp_types):
         policy[w, o] = wp.where(k == g, 1.0, 0.0)
         o += 1
-    ph = int(phase_table[row])
-    if ph == prm.grasp_phase and t >= int(lift_start[w]):
-        ph = prm.lift_phase
+    ph = phase_of(t, int(lift_start[w]), phase_table, prm.last_row, prm.grasp_phase, prm.lift_phase)
     for k in range(prm.num_phases):
         policy[w, o] = wp.where(k == ph, 1.0, 0.0)
         o += 1
     offset = palm_cmd[w] - grasp_palm_pos[w]
     for k in range(3):
-        policy[w, o] = _finite(offset[k] * prm.palm_offset_scale)
+        policy[w, o] = finite(offset[k] * prm.palm_offset_scale)
         o += 1
     for k in range(4):
-        policy[w, o] = _finite(grasp_palm_quat[w, k])
+        policy[w, o] = finite(grasp_palm_quat[w, k])
         o += 1
     if prm.residual_terms != 0:
         for j in range(num_joints):
-            policy[w, o] = _finite(_normalized(rule_target[w, j], lower[j], upper[j]))
+            policy[w, o] = finite(_normalized(rule_target[w, j], lower[j], upper[j]))
             o += 1
         for j in range(num_joints):
-            policy[w, o] = _finite(residual[w, j])
+            policy[w, o] = finite(residual[w, j])
             o += 1
 
     # The privileged group.
+    pos, rot, lin, ang = object_state(
+        w, soft_slot, object_body, body_q, body_qd, soft_com, soft_quat, soft_lin_vel, soft_ang_vel
+    )
     slot = soft_slot[w]
-    qb = body_q[object_body[w]]
-    vb = body_qd[object_body[w]]
-    pos = wp.transform_get_translation(qb)
-    rot = wp.transform_get_rotation(qb)
-    lin = wp.vec3(vb[0], vb[1], vb[2])
-    ang = wp.vec3(vb[3], vb[4], vb[5])
-    eps = float(0.0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
-    sigma = float(0.0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
+    eps = float(0.0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a branch)
+    sigma = float(0.0)  # noqa: UP018
     if slot >= 0:
-        pos = soft_com[slot]
-        rot = soft_quat[slot]
-        lin = soft_lin_vel[slot]
-        ang = soft_ang_vel[slot]
         eps = soft_eps[slot]
         sigma = soft_sigma[slot]
     palm = wp.transform_get_translation(body_q[palm_body[w]])
     o = int(0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
     rel = pos - palm
     for k in range(3):
-        privileged[w, o] = _finite(rel[k] * prm.object_offset_scale)
+        privileged[w, o] = finite(rel[k] * prm.object_offset_scale)
         o += 1
     for k in range(4):
-        privileged[w, o] = _finite(rot[k])
+        privileged[w, o] = finite(rot[k])
         o += 1
     for k in range(3):
-        privileged[w, o] = _finite(lin[k])
+        privileged[w, o] = finite(lin[k])
         o += 1
     for k in range(3):
-        privileged[w, o] = _finite(prm.object_ang_vel_scale * ang[k])
+        privileged[w, o] = finite(prm.object_ang_vel_scale * ang[k])
         o += 1
     for i in range(link_bodies.shape[1]):
         d = wp.transform_get_translation(body_q[link_bodies[w, i]]) - pos
-        privileged[w, o] = _finite(wp.length(d) * prm.link_distance_scale)
+        privileged[w, o] = finite(wp.length(d) * prm.link_distance_scale)
         o += 1
-    privileged[w, o] = _finite(eps)
-    privileged[w, o + 1] = _finite(sigma * prm.sigma_scale)
-    privileged[w, o + 2] = _finite(mass[w])
-    privileged[w, o + 3] = _finite(friction[w])
-    privileged[w, o + 4] = _finite(log_e[w] / prm.log_youngs_per_unit)
+    privileged[w, o] = finite(eps)
+    privileged[w, o + 1] = finite(sigma * prm.sigma_scale)
+    privileged[w, o + 2] = finite(mass[w])
+    privileged[w, o + 3] = finite(friction[w])
+    privileged[w, o + 4] = finite(log_e[w] / prm.log_youngs_per_unit)
     o += 5
     for p in range(num_pads):
         f = pad_force_true[w, p]
         for k in range(3):
-            privileged[w, o] = _finite(_finite(f[k]) / prm.pad_force_per_unit)
+            privileged[w, o] = finite(finite(f[k]) / prm.pad_force_per_unit)
             o += 1
 
 

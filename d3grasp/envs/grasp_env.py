@@ -133,7 +133,6 @@ class GraspEnv:
     def _allocate_buffers(self) -> None:
         tdev, lay, f32 = self.torch_device, self.layout, torch.float32
         ph, se = self.physics, self.sensors
-        rewards.allocate(self)
         # Torch views of device arrays (zero-copy).
         # state_0 is the same object after every control step (an even number of substeps swap it).
         self.t_joint_q = wp_view(ph.state_0.joint_q)
@@ -162,7 +161,46 @@ class GraspEnv:
         # pose the rule-based closing starts from.
         self.open_pose = rest_targets(self.lower, self.upper)
         self.open_action = self.normalize_joints(self.open_pose)
+        self._allocate_kernel_tables()
         self._allocate_episode_buffers()
+        rewards.allocate(self)
+
+    def _allocate_kernel_tables(self) -> None:
+        """What the task's Warp kernels (scoring, reward gather, observations) index with, made once:
+        each world's finger joints, links, object body and soft-object slot (int32), the soft
+        objects' pose and strain, and the schedule's phase (int32) and clock tables."""
+        lay, se, dev = self.layout, self.sensors, self.wp_device
+
+        def index(a: np.ndarray) -> wp.array:
+            return wp.array(np.asarray(a, dtype=np.int32), dtype=wp.int32, device=dev)
+
+        self.world_indices = {
+            "finger_q": index(lay.finger_q),
+            "finger_dof": index(lay.finger_dof),
+            "link_bodies": index(lay.link_bodies),
+            "object_body": index(np.maximum(lay.object_body, 0)),
+            "soft_slot": index(se.world_soft_slot),
+        }
+        self.wp_palm_body = index(lay.palm_body)
+        soft = se.strain_layout is not None
+
+        def pose(name: str, dtype) -> wp.array:  # a stand-in of one element without soft objects
+            return getattr(se.pose_buf, name) if soft else wp.zeros(1, dtype=dtype, device=dev)
+
+        self.soft_state = {
+            "soft_com": pose("com", wp.vec3),
+            "soft_quat": pose("quat", wp.quat),
+            "soft_lin_vel": pose("lin_vel", wp.vec3),
+            "soft_ang_vel": pose("ang_vel", wp.vec3),
+            "soft_eps": se.strain_buf.object_eps if soft else wp.zeros(1, dtype=float, device=dev),
+        }
+        self.soft_sigma = se.strain_buf.sigma if soft else wp.zeros(1, dtype=float, device=dev)
+        self.soft_node_count = (
+            se.strain_layout.object_node_count if soft else wp.zeros(1, dtype=float, device=dev)
+        )
+        tab = self.script.tables(self.torch_device)
+        # Kept here: a Warp array made from a torch tensor does not own its memory.
+        self.kernel_tables = {"phase": tab.phase.to(torch.int32), "clock": tab.clock.contiguous()}
 
     def _allocate_episode_buffers(self) -> None:
         W, A, tdev, f32 = self.num_envs, self.num_actions, self.torch_device, torch.float32
@@ -329,10 +367,9 @@ class GraspEnv:
         self.episode_length_buf = self.episode_length_buf + 1
         t = self.episode_length_buf
 
-        obj_pos, _, obj_lin, obj_ang = self.object_state()
-        finite = torch.isfinite(obj_pos).all(-1) & torch.isfinite(self.t_joint_q[self.i_finger_q]).all(-1)
-        rew = rewards.compute_rewards(self, obj_pos, obj_lin, obj_ang, finite)
-        done, time_out = terminations.score(self, t, obj_pos, finite)
+        # The reward's launches gather the state the scoring reads too (the object, finiteness).
+        rew = rewards.compute_rewards(self)
+        done, time_out = terminations.score(self, t)
         self.episode_return += rew
 
         extras: dict[str, Any] = {"time_outs": time_out, "log": {}}

@@ -308,8 +308,6 @@ def test_contact_reward_counts_the_pads_touch_of_the_object_only():
     costs k_p per newton."""
     env = _box_env()
     rcfg = env.cfg.rewards
-    obj_pos, _, obj_lin, obj_ang = env.object_state()
-    finite = torch.ones(1, dtype=torch.bool)
     table = torch.zeros(1, NUM_PADS, 3)
     table[0, [0, 3, 6], 2] = 15.0  # three fingertip pads pressing the table at 15 N each
     on_object = torch.zeros(1, NUM_PADS, 3)
@@ -327,5 +325,5 @@ def test_contact_reward_counts_the_pads_touch_of_the_object_only():
     ):
         set_pads(env.sensors.pad_force_true, env.sensors.pad_contact_true, table + object_force)
         set_pads(env.sensors.pad_force_object, env.sensors.pad_contact_object, object_force)
-        rewards.compute_rewards(env, obj_pos, obj_lin, obj_ang, finite)
+        rewards.compute_rewards(env)
         assert float(env.t_reward_terms[0, contact]) == pytest.approx(expected, rel=1e-5, abs=1e-6)

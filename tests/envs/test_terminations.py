@@ -44,7 +44,7 @@ def _env(num_worlds: int, lift_on_touch: bool = True) -> SimpleNamespace:
             strain_layout=None,
         ),
         physics=SimpleNamespace(state_0=SimpleNamespace(body_q=wp.zeros(W, dtype=wp.transform, device=dev))),
-        layout=SimpleNamespace(palm_body=np.arange(W)),
+        wp_palm_body=wp.array(np.arange(W, dtype=np.int32), dtype=wp.int32, device=dev),
         residual_base=None,
         object_start=torch.zeros(W, 3),
         disturb_order=torch.arange(6).expand(W, 6).clone(),
@@ -81,7 +81,9 @@ def _run(env, object_path, palm_path, object_pads, table_pads=None):
         f_true[:] = object_pads(t) + (table_pads(t) if table_pads else 0.0)
         body_q[:, :3] = palm_path(t)
         body_q[:, 6] = 1.0
-        terminations.score(env, tt, object_path(t), torch.ones(W, dtype=torch.bool))
+        env.t_score_in["obj_pos"][:] = object_path(t)
+        env.t_score_in["finite"][:] = True
+        terminations.score(env, tt)
         env.episode_length_buf = tt
     return terminations.episode_records(env, torch.arange(W))
 

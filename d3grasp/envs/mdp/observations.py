@@ -18,7 +18,6 @@ import functools
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 import warp as wp
 from tensordict import TensorDict
@@ -179,7 +178,7 @@ def reference_observations(env: GraspEnv) -> TensorDict:
 def allocate(env: GraspEnv) -> None:
     """The observation kernel's parameters, inputs and outputs (sized by the terms above), and its
     launch captured as a graph. Needs the environment's state, sensors, scoring state and rule."""
-    W, dev, o, lay, tdev = env.num_envs, env.wp_device, env.cfg.obs, env.layout, env.torch_device
+    W, dev, o = env.num_envs, env.wp_device, env.cfg.obs
     sizes = reference_observations(env)
     prm = ok.ObservationParams()
     prm.pad_force_per_unit = o.pad_force_per_unit
@@ -195,21 +194,11 @@ def allocate(env: GraspEnv) -> None:
     prm.last_row = env.script.max_episode_length + 1
     prm.grasp_phase, prm.lift_phase = PHASES.index("grasp"), PHASES.index("lift")
     prm.num_grasp_types, prm.num_phases = len(GRASP_TYPES), len(PHASES)
-    tab = env.script.tables(tdev)
-    # Tables and indices the kernel reads in its own dtypes, kept alive here (Warp arrays made from
-    # torch tensors do not own their memory).
-    env.obs_tables = {"clock": tab.clock.contiguous(), "phase": tab.phase.to(torch.int32)}
-    sensors, ph = env.sensors, env.physics
-
-    def index(a: np.ndarray) -> wp.array:
-        return wp.array(np.asarray(a, dtype=np.int32), dtype=wp.int32, device=dev)
+    sensors, ph, tables = env.sensors, env.physics, env.kernel_tables
 
     def floats(*shape: int, dtype=float) -> wp.array:
         return wp.zeros(shape, dtype=dtype, device=dev)
 
-    soft = sensors.strain_layout is not None
-    pose = sensors.pose_buf if soft else None
-    strain = sensors.strain_buf if soft else None
     env.obs_inputs = ok.ObservationInputs(
         t=wp.zeros(W, dtype=wp.int64, device=dev),
         lift_start=env.score_state.lift_start,
@@ -218,13 +207,11 @@ def allocate(env: GraspEnv) -> None:
         pad_force_true=sensors.pad_force_true,
         joint_q=ph.state_0.joint_q,
         joint_qd=ph.state_0.joint_qd,
-        finger_q=index(lay.finger_q),
-        finger_dof=index(lay.finger_dof),
         lower=wp.from_torch(env.lower),
         upper=wp.from_torch(env.upper),
         action_hist=floats(W, env.action_hist[0].numel()),
-        clock=wp.from_torch(env.obs_tables["clock"]),
-        phase=wp.from_torch(env.obs_tables["phase"]),
+        clock=wp.from_torch(tables["clock"]),
+        phase=wp.from_torch(tables["phase"]),
         grasp_id=wp.from_torch(env.grasp_id),
         palm_cmd=floats(W, dtype=wp.vec3),
         grasp_palm_pos=wp.from_torch(env.grasp_palm_pos, dtype=wp.vec3),
@@ -233,16 +220,10 @@ def allocate(env: GraspEnv) -> None:
         residual=floats(W, env.residual.shape[1]),
         body_q=ph.state_0.body_q,
         body_qd=ph.state_0.body_qd,
-        palm_body=index(lay.palm_body),
-        object_body=index(np.maximum(lay.object_body, 0)),
-        link_bodies=index(lay.link_bodies),
-        soft_slot=index(sensors.world_soft_slot),
-        soft_com=pose.com if soft else floats(1, dtype=wp.vec3),
-        soft_quat=pose.quat if soft else floats(1, dtype=wp.quat),
-        soft_lin_vel=pose.lin_vel if soft else floats(1, dtype=wp.vec3),
-        soft_ang_vel=pose.ang_vel if soft else floats(1, dtype=wp.vec3),
-        soft_eps=strain.object_eps if soft else floats(1),
-        soft_sigma=strain.sigma if soft else floats(1),
+        palm_body=env.wp_palm_body,
+        **env.world_indices,
+        **env.soft_state,
+        soft_sigma=env.soft_sigma,
         mass=wp.from_torch(env.object_mass),
         friction=wp.from_torch(env.object_friction),
         log_e=wp.from_torch(env.object_log_e),

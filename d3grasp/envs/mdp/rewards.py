@@ -1,6 +1,9 @@
 """The reward: the paper's terms plus the lift term, computed by the Warp kernels of
-``d3grasp.kernels.rewards`` for all worlds at once. Here the kernels' inputs are filled from the
-state; the weights are ``GraspEnvConfig.rewards``."""
+``d3grasp.kernels.rewards`` for all worlds at once; the weights are ``GraspEnvConfig.rewards``.
+
+Their per-step inputs are gathered from the state by ``d3grasp.kernels.world_state`` (which also
+hands the scoring the object's position and whether the state is finite), in the same graph as the
+reward kernels; :func:`reference_reward_inputs` is that gather in torch, the kernel's reference."""
 
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ from d3grasp.envs.physics import Replayed
 from d3grasp.envs.scene import OBJECT_SOFT
 from d3grasp.envs.sensors import wp_view
 from d3grasp.kernels import rewards as rk
+from d3grasp.kernels import world_state as ws
 from d3grasp.vocabulary import PHASES
 
 if TYPE_CHECKING:
@@ -68,39 +72,43 @@ def allocate(env: GraspEnv) -> None:
     env.t_reward_total = wp_view(env.rw_out.total)
     env.t_rw = {name: wp_view(getattr(env.rw_in, name)) for name in _STEP_INPUTS}
     env.t_residual_term = torch.zeros(W, device=env.torch_device)  # residual_penalty's, when on
+    # The gather of the inputs above from the state (after the scoring's buffers: it reads the lift
+    # starts and writes the scoring's object position and finiteness).
+    prm = ws.RewardGatherParams()
+    prm.table_height = env.cfg.sim.table_height
+    prm.finger_half_thickness = FINGER_HALF_THICKNESS
+    prm.last_row = env.script.max_episode_length + 1
+    prm.grasp_phase, prm.lift_phase = PHASES.index("grasp"), PHASES.index("lift")
+    env.rw_gather_params = prm
+    env.rw_gather = ws.RewardGather(
+        t=wp.zeros(W, dtype=wp.int64, device=dev),
+        lift_start=env.score_state.lift_start,
+        phase=wp.from_torch(env.kernel_tables["phase"]),
+        joint_q=env.physics.state_0.joint_q,
+        joint_qd=env.physics.state_0.joint_qd,
+        body_q=env.physics.state_0.body_q,
+        body_qd=env.physics.state_0.body_qd,
+        **env.world_indices,
+        **env.soft_state,
+        soft_node_count=env.soft_node_count,
+        object_start=wp.from_torch(env.object_start, dtype=wp.vec3),
+    )
+    env.t_rw_step = wp_view(env.rw_gather.t)
     # The five reward launches replayed as one graph (the buffers above never move): a launch from
     # Python costs ~0.15 ms on the CPU, the kernels at a few worlds microseconds.
-    env.reward_launch = Replayed(
-        lambda: rk.compute_rewards(env.rw_in, env.rw_out), [rk], dev, env.cfg.sim.use_graph
-    )
+    env.reward_launch = Replayed(lambda: _launches(env), [ws, rk], dev, env.cfg.sim.use_graph)
 
 
-def compute_rewards(env: GraspEnv, obj_pos, obj_lin, obj_ang, finite) -> torch.Tensor:
-    """The step's reward of every world (W,), non-finite values zeroed and clipped at ``reward_clip``."""
-    links = env.t_body_q[env.i_link_bodies, :3]
-    r = env.t_rw
-    r["alive"][:] = finite.float()
-    r["joint_q"][:] = torch.nan_to_num(env.t_joint_q[env.i_finger_q])
-    r["joint_qd"][:] = torch.nan_to_num(env.t_joint_qd[env.i_finger_dof])
-    r["link_pos"][:] = torch.nan_to_num(links)
-    r["object_com"][:] = torch.nan_to_num(obj_pos)
-    r["obj_lin_vel"][:] = torch.nan_to_num(obj_lin)
-    r["obj_ang_vel"][:] = torch.nan_to_num(obj_ang)
-    height = links[..., 2] - env.cfg.sim.table_height - FINGER_HALF_THICKNESS
-    r["env_dist"][:] = torch.nan_to_num(height).clamp(min=0.0)
-    sensors = env.sensors
-    r["eps_bar"][:] = (
-        sensors.soft_scalar(sensors.strain_buf.object_eps) if sensors.strain_layout is not None else 0.0
-    )
-    r["node_count"][:] = (
-        sensors.soft_scalar(sensors.strain_layout.object_node_count)
-        if sensors.strain_layout is not None
-        else 0.0
-    )
-    # Rise above the resting height, counted from the lift phase on (the kernel clamps it).
-    lifting = env.phase_of(env.episode_length_buf) >= PHASES.index("lift")
-    rise = torch.nan_to_num(obj_pos[:, 2] - env.object_start[:, 2])
-    r["object_rise"][:] = torch.where(lifting, rise, torch.zeros_like(rise))
+def _launches(env: GraspEnv) -> None:
+    si = env.score_inputs
+    ws.gather_reward_inputs(env.rw_gather_params, env.rw_gather, env.rw_in, si.obj_pos, si.finite)
+    rk.compute_rewards(env.rw_in, env.rw_out)
+
+
+def compute_rewards(env: GraspEnv) -> torch.Tensor:
+    """The step's reward of every world (W,), non-finite values zeroed and clipped at ``reward_clip``;
+    gathers the scoring's object position and finiteness on the way."""
+    env.t_rw_step.copy_(env.episode_length_buf)
     env.reward_launch()
     total = torch.nan_to_num(env.t_reward_total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
     if env.cfg.residual_penalty:
@@ -108,6 +116,39 @@ def compute_rewards(env: GraspEnv, obj_pos, obj_lin, obj_ang, finite) -> torch.T
         total += env.t_residual_term
     clip = env.cfg.reward_clip
     return total.clamp(-clip, clip) if clip > 0 else total
+
+
+def reference_reward_inputs(env: GraspEnv) -> dict[str, torch.Tensor]:
+    """The reward kernels' per-step inputs from the state in torch (the gather kernel's reference),
+    with the object's position and whether the state is finite."""
+    obj_pos, _, obj_lin, obj_ang = env.object_state()
+    finite = torch.isfinite(obj_pos).all(-1) & torch.isfinite(env.t_joint_q[env.i_finger_q]).all(-1)
+    links = env.t_body_q[env.i_link_bodies, :3]
+    height = links[..., 2] - env.cfg.sim.table_height - FINGER_HALF_THICKNESS
+    sensors = env.sensors
+    soft = sensors.strain_layout is not None
+    # Rise above the resting height, counted from the lift phase on.
+    lifting = env.phase_of(env.episode_length_buf) >= PHASES.index("lift")
+    rise = torch.nan_to_num(obj_pos[:, 2] - env.object_start[:, 2])
+    return {
+        "alive": finite.float(),
+        "joint_q": torch.nan_to_num(env.t_joint_q[env.i_finger_q]),
+        "joint_qd": torch.nan_to_num(env.t_joint_qd[env.i_finger_dof]),
+        "link_pos": torch.nan_to_num(links),
+        "object_com": torch.nan_to_num(obj_pos),
+        "obj_lin_vel": torch.nan_to_num(obj_lin),
+        "obj_ang_vel": torch.nan_to_num(obj_ang),
+        "env_dist": torch.nan_to_num(height).clamp(min=0.0),
+        "eps_bar": sensors.soft_scalar(sensors.strain_buf.object_eps) if soft else torch.zeros(env.num_envs),
+        "node_count": (
+            sensors.soft_scalar(sensors.strain_layout.object_node_count)
+            if soft
+            else torch.zeros(env.num_envs)
+        ),
+        "object_rise": torch.where(lifting, rise, torch.zeros_like(rise)),
+        "obj_pos": obj_pos,
+        "finite": finite,
+    }
 
 
 def residual_penalty(env: GraspEnv) -> torch.Tensor:

@@ -125,7 +125,7 @@ def allocate(env: GraspEnv) -> None:
         pad_force_object=env.sensors.pad_force_object,
         pad_force_true=env.sensors.pad_force_true,
         body_q=env.physics.state_0.body_q,
-        palm_body=wp.array(np.asarray(env.layout.palm_body, dtype=np.int32), dtype=wp.int32, device=dev),
+        palm_body=env.wp_palm_body,
         object_start=wp.from_torch(env.object_start, dtype=wp.vec3),
         disturb_order=wp.from_torch(env.disturb_order),
     )
@@ -144,14 +144,12 @@ def allocate(env: GraspEnv) -> None:
     )
 
 
-def score(
-    env: GraspEnv, t: torch.Tensor, obj_pos: torch.Tensor, finite: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Update every world's success metrics after step ``t``; return (done, time_out)."""
+def score(env: GraspEnv, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Update every world's success metrics after step ``t``; return (done, time_out). The object's
+    position and whether the state is finite (``env.t_score_in["obj_pos"]``, ``["finite"]``) are
+    the reward gather's (``rewards.compute_rewards``), written before."""
     i = env.t_score_in
     i["t"].copy_(t)
-    i["obj_pos"].copy_(obj_pos)
-    i["finite"].copy_(finite)
     if env.residual_base is not None:
         # The rule runs inside the env (residual action modes): a hand closed as far as the object
         # lets it is ready to lift too (a hook or a palm grasp need not touch with the thumb's pads).

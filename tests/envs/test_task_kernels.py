@@ -1,6 +1,8 @@
-"""The observation kernel against the observation terms in torch (its reference), on a running
-environment with a rigid and a soft object: after steps with random actions and after a reset, in the
-residual modes (the rule's targets in the policy group) and the absolute one without touch."""
+"""The task's kernels against the torch code they replace (their references), on a running
+environment with a rigid and a soft object: the observation groups after every step with random
+actions and after a reset, and the reward inputs gathered from the state (with the scoring's object
+position and finiteness) after every step; in the residual modes (the rule's targets in the policy
+group) and the absolute one without touch."""
 
 from __future__ import annotations
 
@@ -9,7 +11,7 @@ import torch
 import warp as wp
 
 from d3grasp.envs import make_env
-from d3grasp.envs.mdp import observations
+from d3grasp.envs.mdp import observations, rewards
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -20,6 +22,14 @@ def _compare(env) -> None:
     for group in ("policy", "privileged"):
         assert got[group].shape == want[group].shape
         torch.testing.assert_close(got[group], want[group], rtol=1e-5, atol=1e-6, msg=group)
+
+
+def _compare_reward_inputs(env) -> None:
+    want = rewards.reference_reward_inputs(env)
+    got = {name: view for name, view in env.t_rw.items()}
+    got["obj_pos"], got["finite"] = env.t_score_in["obj_pos"], env.t_score_in["finite"]
+    for name, value in want.items():
+        torch.testing.assert_close(got[name].reshape(value.shape), value, rtol=1e-5, atol=1e-6, msg=name)
 
 
 @pytest.mark.parametrize(
@@ -40,6 +50,7 @@ def test_kernel_matches_the_torch_terms(settings: dict) -> None:
     for _ in range(130):  # into the lift: a touch-timed lift changes the phase term
         env.step(2.0 * torch.rand(env.num_envs, env.num_actions, generator=gen) - 1.0)
         _compare(env)
+        _compare_reward_inputs(env)
     env.reset_worlds(torch.tensor([1]))
     _compare(env)
     env.close()
