@@ -24,7 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import warp as wp
-from d3grasp.kernels.world_state import finite, object_state, phase_of
+from d3grasp.kernels.world_state import WorldArrays, finite, object_state, phase_of
 
 __all__ = ["ObservationInputs", "ObservationParams", "compute_observations"]
 
@@ -41,7 +41,6 @@ class ObservationParams:
     log_youngs_per_unit: float
     tactile: int  # 1: the pad terms lead the policy group
     residual_terms: int  # 1: the rule's targets and the residual end it
-    last_row: int  # the schedule tables' last row (max_episode_length + 1)
     grasp_phase: int  # phase indices: a world whose lift started early is in the lift phase
     lift_phase: int
     num_grasp_types: int
@@ -50,49 +49,27 @@ class ObservationParams:
 
 @dataclass
 class ObservationInputs:
-    """Per world (W), the arrays the groups read. Step count ``t`` (int64), ``lift_start`` (int64);
-    pads (W, P): ``pad_force``, ``pad_force_true`` vec3, ``pad_contact`` float; joints: the state's
-    ``joint_q``, ``joint_qd`` with the fingers' (W, 16) int32 ``finger_q``, ``finger_dof``, limits
-    ``lower``, ``upper`` (16,); ``action_hist`` (W, H * A) float; the schedule's ``clock`` (rows, 3) float
-    and ``phase`` (rows,) int32; ``grasp_id`` (W,) int64; ``palm_cmd``, ``grasp_palm_pos`` vec3,
-    ``grasp_palm_quat`` (W, 4) float; ``rule_target``, ``residual`` (W, 16) float; the state's
-    ``body_q`` transform and ``body_qd`` spatial vectors with ``palm_body``, ``object_body`` (W,) and
-    ``link_bodies`` (W, L) int32; ``soft_slot`` (W,) int32 into the soft objects' ``soft_com``,
-    ``soft_quat``, ``soft_lin_vel``, ``soft_ang_vel``, ``soft_eps``, ``soft_sigma``; the object's
+    """Per world (W), what the groups read besides the state (``world_state.WorldArrays``): the step
+    count ``t`` (int64); pads (W, P): ``pad_force``, ``pad_force_true`` vec3, ``pad_contact`` float;
+    the fingers' joint limits ``lower``, ``upper`` (16,); ``action_hist`` (W, H * A) float; the
+    schedule's ``clock`` (rows, 3) float; ``grasp_id`` (W,) int64; ``palm_cmd``, ``grasp_palm_pos``
+    vec3, ``grasp_palm_quat`` (W, 4) float; ``rule_target``, ``residual`` (W, 16) float; the object's
     ``mass``, ``friction`` and ``log_e`` (W,) float."""
 
     t: wp.array
-    lift_start: wp.array
     pad_force: wp.array
     pad_contact: wp.array
     pad_force_true: wp.array
-    joint_q: wp.array
-    joint_qd: wp.array
-    finger_q: wp.array
-    finger_dof: wp.array
     lower: wp.array
     upper: wp.array
     action_hist: wp.array
     clock: wp.array
-    phase: wp.array
     grasp_id: wp.array
     palm_cmd: wp.array
     grasp_palm_pos: wp.array
     grasp_palm_quat: wp.array
     rule_target: wp.array
     residual: wp.array
-    body_q: wp.array
-    body_qd: wp.array
-    palm_body: wp.array
-    object_body: wp.array
-    link_bodies: wp.array
-    soft_slot: wp.array
-    soft_com: wp.array
-    soft_quat: wp.array
-    soft_lin_vel: wp.array
-    soft_ang_vel: wp.array
-    soft_eps: wp.array
-    soft_sigma: wp.array
     mass: wp.array
     friction: wp.array
     log_e: wp.array
@@ -106,38 +83,21 @@ def _normalized(q: float, lo: float, hi: float) -> float:
 @wp.kernel
 def _observation_kernel(
     prm: ObservationParams,
+    world: WorldArrays,
     t_step: wp.array(dtype=wp.int64),
-    lift_start: wp.array(dtype=wp.int64),
     pad_force: wp.array2d(dtype=wp.vec3),
     pad_contact: wp.array2d(dtype=float),
     pad_force_true: wp.array2d(dtype=wp.vec3),
-    joint_q: wp.array(dtype=float),
-    joint_qd: wp.array(dtype=float),
-    finger_q: wp.array2d(dtype=wp.int32),
-    finger_dof: wp.array2d(dtype=wp.int32),
     lower: wp.array(dtype=float),
     upper: wp.array(dtype=float),
     action_hist: wp.array2d(dtype=float),
     clock: wp.array2d(dtype=float),
-    phase_table: wp.array(dtype=wp.int32),
     grasp_id: wp.array(dtype=wp.int64),
     palm_cmd: wp.array(dtype=wp.vec3),
     grasp_palm_pos: wp.array(dtype=wp.vec3),
     grasp_palm_quat: wp.array2d(dtype=float),
     rule_target: wp.array2d(dtype=float),
     residual: wp.array2d(dtype=float),
-    body_q: wp.array(dtype=wp.transform),
-    body_qd: wp.array(dtype=wp.spatial_vector),
-    palm_body: wp.array(dtype=wp.int32),
-    object_body: wp.array(dtype=wp.int32),
-    link_bodies: wp.array2d(dtype=wp.int32),
-    soft_slot: wp.array(dtype=wp.int32),
-    soft_com: wp.array(dtype=wp.vec3),
-    soft_quat: wp.array(dtype=wp.quat),
-    soft_lin_vel: wp.array(dtype=wp.vec3),
-    soft_ang_vel: wp.array(dtype=wp.vec3),
-    soft_eps: wp.array(dtype=float),
-    soft_sigma: wp.array(dtype=float),
     mass: wp.array(dtype=float),
     friction: wp.array(dtype=float),
     log_e: wp.array(dtype=float),
@@ -147,7 +107,7 @@ def _observation_kernel(
     w = wp.tid()
     o = int(0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
     num_pads = pad_force.shape[1]
-    num_joints = finger_q.shape[1]
+    num_joints = world.finger_q.shape[1]
     if prm.tactile != 0:
         for p in range(num_pads):
             f = pad_force[w, p]
@@ -158,17 +118,17 @@ def _observation_kernel(
             policy[w, o] = finite(pad_contact[w, p])
             o += 1
     for j in range(num_joints):
-        q = finite(joint_q[finger_q[w, j]])
+        q = finite(world.joint_q[world.finger_q[w, j]])
         policy[w, o] = finite(_normalized(q, lower[j], upper[j]))
         o += 1
     for j in range(num_joints):
-        policy[w, o] = finite(prm.joint_vel_scale * finite(joint_qd[finger_dof[w, j]]))
+        policy[w, o] = finite(prm.joint_vel_scale * finite(world.joint_qd[world.finger_dof[w, j]]))
         o += 1
     for k in range(action_hist.shape[1]):
         policy[w, o] = finite(action_hist[w, k])
         o += 1
     t = int(t_step[w])
-    row = wp.clamp(t, 0, prm.last_row)
+    row = wp.clamp(t, 0, world.last_row)
     for k in range(3):
         policy[w, o] = finite(clock[row, k])
         o += 1
@@ -176,7 +136,7 @@ def _observation_kernel(
     for k in range(prm.num_grasp_types):
         policy[w, o] = wp.where(k == g, 1.0, 0.0)
         o += 1
-    ph = phase_of(t, int(lift_start[w]), phase_table, prm.last_row, prm.grasp_phase, prm.lift_phase)
+    ph = phase_of(world, w, t, prm.grasp_phase, prm.lift_phase)
     for k in range(prm.num_phases):
         policy[w, o] = wp.where(k == ph, 1.0, 0.0)
         o += 1
@@ -196,16 +156,14 @@ def _observation_kernel(
             o += 1
 
     # The privileged group.
-    pos, rot, lin, ang = object_state(
-        w, soft_slot, object_body, body_q, body_qd, soft_com, soft_quat, soft_lin_vel, soft_ang_vel
-    )
-    slot = soft_slot[w]
+    pos, rot, lin, ang = object_state(world, w)
+    slot = world.soft_slot[w]
     eps = float(0.0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a branch)
     sigma = float(0.0)  # noqa: UP018
     if slot >= 0:
-        eps = soft_eps[slot]
-        sigma = soft_sigma[slot]
-    palm = wp.transform_get_translation(body_q[palm_body[w]])
+        eps = world.soft_eps[slot]
+        sigma = world.soft_sigma[slot]
+    palm = wp.transform_get_translation(world.body_q[world.palm_body[w]])
     o = int(0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
     rel = pos - palm
     for k in range(3):
@@ -220,8 +178,8 @@ def _observation_kernel(
     for k in range(3):
         privileged[w, o] = finite(prm.object_ang_vel_scale * ang[k])
         o += 1
-    for i in range(link_bodies.shape[1]):
-        d = wp.transform_get_translation(body_q[link_bodies[w, i]]) - pos
+    for i in range(world.link_bodies.shape[1]):
+        d = wp.transform_get_translation(world.body_q[world.link_bodies[w, i]]) - pos
         privileged[w, o] = finite(wp.length(d) * prm.link_distance_scale)
         o += 1
     privileged[w, o] = finite(eps)
@@ -238,14 +196,14 @@ def _observation_kernel(
 
 
 def compute_observations(
-    prm: ObservationParams, inp: ObservationInputs, policy: wp.array, privileged: wp.array
+    prm: ObservationParams, world: WorldArrays, inp: ObservationInputs, policy: wp.array, privileged: wp.array
 ) -> None:
     """Both groups of every world into ``policy`` (W, P) and ``privileged`` (W, Q) (one launch, no
     host sync: graph-capturable)."""
     wp.launch(
         _observation_kernel,
         dim=policy.shape[0],
-        inputs=[prm, *(getattr(inp, name) for name in ObservationInputs.__dataclass_fields__)],
+        inputs=[prm, world, *(getattr(inp, name) for name in ObservationInputs.__dataclass_fields__)],
         outputs=[policy, privileged],
         device=policy.device,
     )

@@ -47,6 +47,7 @@ from d3grasp.envs.scene import (
 from d3grasp.envs.script import EpisodeScript
 from d3grasp.envs.sensors import Sensors, wp_view
 from d3grasp.kernels import rewards as rk
+from d3grasp.kernels import world_state as ws
 from d3grasp.vocabulary import GRASP_TYPES, METRICS, PHASES
 
 __all__ = ["PHASES", "GraspEnv"]
@@ -161,46 +162,44 @@ class GraspEnv:
         # pose the rule-based closing starts from.
         self.open_pose = rest_targets(self.lower, self.upper)
         self.open_action = self.normalize_joints(self.open_pose)
+        self._allocate_episode_buffers()  # the scoring's state among them
         self._allocate_kernel_tables()
-        self._allocate_episode_buffers()
         rewards.allocate(self)
 
     def _allocate_kernel_tables(self) -> None:
-        """What the task's Warp kernels (scoring, reward gather, observations) index with, made once:
-        each world's finger joints, links, object body and soft-object slot (int32), the soft
-        objects' pose and strain, and the schedule's phase (int32) and clock tables."""
-        lay, se, dev = self.layout, self.sensors, self.wp_device
+        """What the task's Warp kernels (reward gather, observations) read of every world, made once
+        (``kernels.world_state.WorldArrays``): the state, each world's finger joints, links, palm,
+        object body and soft-object slot, the soft objects' pose and strain, the lift starts (the
+        scoring's) and the schedule's phase table; with the schedule's clock table."""
+        lay, se, dev, ph = self.layout, self.sensors, self.wp_device, self.physics
 
         def index(a: np.ndarray) -> wp.array:
             return wp.array(np.asarray(a, dtype=np.int32), dtype=wp.int32, device=dev)
 
-        self.world_indices = {
-            "finger_q": index(lay.finger_q),
-            "finger_dof": index(lay.finger_dof),
-            "link_bodies": index(lay.link_bodies),
-            "object_body": index(np.maximum(lay.object_body, 0)),
-            "soft_slot": index(se.world_soft_slot),
-        }
-        self.wp_palm_body = index(lay.palm_body)
-        soft = se.strain_layout is not None
+        def soft(buf, name: str, dtype=float) -> wp.array:  # one-element stand-in without soft objects
+            return (
+                getattr(buf, name) if se.strain_layout is not None else wp.zeros(1, dtype=dtype, device=dev)
+            )
 
-        def pose(name: str, dtype) -> wp.array:  # a stand-in of one element without soft objects
-            return getattr(se.pose_buf, name) if soft else wp.zeros(1, dtype=dtype, device=dev)
-
-        self.soft_state = {
-            "soft_com": pose("com", wp.vec3),
-            "soft_quat": pose("quat", wp.quat),
-            "soft_lin_vel": pose("lin_vel", wp.vec3),
-            "soft_ang_vel": pose("ang_vel", wp.vec3),
-            "soft_eps": se.strain_buf.object_eps if soft else wp.zeros(1, dtype=float, device=dev),
-        }
-        self.soft_sigma = se.strain_buf.sigma if soft else wp.zeros(1, dtype=float, device=dev)
-        self.soft_node_count = (
-            se.strain_layout.object_node_count if soft else wp.zeros(1, dtype=float, device=dev)
-        )
         tab = self.script.tables(self.torch_device)
         # Kept here: a Warp array made from a torch tensor does not own its memory.
         self.kernel_tables = {"phase": tab.phase.to(torch.int32), "clock": tab.clock.contiguous()}
+        wa = ws.WorldArrays()
+        wa.joint_q, wa.joint_qd = ph.state_0.joint_q, ph.state_0.joint_qd
+        wa.body_q, wa.body_qd = ph.state_0.body_q, ph.state_0.body_qd
+        wa.finger_q, wa.finger_dof = index(lay.finger_q), index(lay.finger_dof)
+        wa.link_bodies, wa.palm_body = index(lay.link_bodies), index(lay.palm_body)
+        wa.object_body, wa.soft_slot = index(np.maximum(lay.object_body, 0)), index(se.world_soft_slot)
+        pose = getattr(se, "pose_buf", None)
+        wa.soft_com, wa.soft_quat = soft(pose, "com", wp.vec3), soft(pose, "quat", wp.quat)
+        wa.soft_lin_vel, wa.soft_ang_vel = soft(pose, "lin_vel", wp.vec3), soft(pose, "ang_vel", wp.vec3)
+        strain = getattr(se, "strain_buf", None)
+        wa.soft_eps, wa.soft_sigma = soft(strain, "object_eps"), soft(strain, "sigma")
+        wa.soft_node_count = soft(se.strain_layout, "object_node_count")
+        wa.lift_start = self.score_state.lift_start
+        wa.phase = wp.from_torch(self.kernel_tables["phase"])
+        wa.last_row = self.script.max_episode_length + 1
+        self.world_arrays = wa
 
     def _allocate_episode_buffers(self) -> None:
         W, A, tdev, f32 = self.num_envs, self.num_actions, self.torch_device, torch.float32

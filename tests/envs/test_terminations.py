@@ -44,7 +44,7 @@ def _env(num_worlds: int, lift_on_touch: bool = True) -> SimpleNamespace:
             strain_layout=None,
         ),
         physics=SimpleNamespace(state_0=SimpleNamespace(body_q=wp.zeros(W, dtype=wp.transform, device=dev))),
-        wp_palm_body=wp.array(np.arange(W, dtype=np.int32), dtype=wp.int32, device=dev),
+        layout=SimpleNamespace(palm_body=np.arange(W)),
         residual_base=None,
         object_start=torch.zeros(W, 3),
         disturb_order=torch.arange(6).expand(W, 6).clone(),

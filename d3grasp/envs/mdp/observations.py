@@ -191,39 +191,28 @@ def allocate(env: GraspEnv) -> None:
     prm.log_youngs_per_unit = o.log_youngs_per_unit
     prm.tactile = int(env.cfg.tactile_obs)
     prm.residual_terms = int(env.residual_base is not None)
-    prm.last_row = env.script.max_episode_length + 1
     prm.grasp_phase, prm.lift_phase = PHASES.index("grasp"), PHASES.index("lift")
     prm.num_grasp_types, prm.num_phases = len(GRASP_TYPES), len(PHASES)
-    sensors, ph, tables = env.sensors, env.physics, env.kernel_tables
+    sensors, tables = env.sensors, env.kernel_tables
 
     def floats(*shape: int, dtype=float) -> wp.array:
         return wp.zeros(shape, dtype=dtype, device=dev)
 
     env.obs_inputs = ok.ObservationInputs(
         t=wp.zeros(W, dtype=wp.int64, device=dev),
-        lift_start=env.score_state.lift_start,
         pad_force=sensors.pad_force,
         pad_contact=sensors.pad_contact,
         pad_force_true=sensors.pad_force_true,
-        joint_q=ph.state_0.joint_q,
-        joint_qd=ph.state_0.joint_qd,
         lower=wp.from_torch(env.lower),
         upper=wp.from_torch(env.upper),
         action_hist=floats(W, env.action_hist[0].numel()),
         clock=wp.from_torch(tables["clock"]),
-        phase=wp.from_torch(tables["phase"]),
         grasp_id=wp.from_torch(env.grasp_id),
         palm_cmd=floats(W, dtype=wp.vec3),
         grasp_palm_pos=wp.from_torch(env.grasp_palm_pos, dtype=wp.vec3),
         grasp_palm_quat=wp.from_torch(env.grasp_palm_quat),
         rule_target=floats(W, env.residual.shape[1]),
         residual=floats(W, env.residual.shape[1]),
-        body_q=ph.state_0.body_q,
-        body_qd=ph.state_0.body_qd,
-        palm_body=env.wp_palm_body,
-        **env.world_indices,
-        **env.soft_state,
-        soft_sigma=env.soft_sigma,
         mass=wp.from_torch(env.object_mass),
         friction=wp.from_torch(env.object_friction),
         log_e=wp.from_torch(env.object_log_e),
@@ -237,7 +226,9 @@ def allocate(env: GraspEnv) -> None:
         n: wp_view(getattr(inp, n)) for n in ("t", "action_hist", "palm_cmd", "rule_target", "residual")
     }
     env.obs_launch = Replayed(
-        lambda: ok.compute_observations(env.obs_params, env.obs_inputs, env.obs_policy, env.obs_privileged),
+        lambda: ok.compute_observations(
+            env.obs_params, env.world_arrays, env.obs_inputs, env.obs_policy, env.obs_privileged
+        ),
         [ok],
         dev,
         env.cfg.sim.use_graph,

@@ -77,23 +77,11 @@ def allocate(env: GraspEnv) -> None:
     prm = ws.RewardGatherParams()
     prm.table_height = env.cfg.sim.table_height
     prm.finger_half_thickness = FINGER_HALF_THICKNESS
-    prm.last_row = env.script.max_episode_length + 1
     prm.grasp_phase, prm.lift_phase = PHASES.index("grasp"), PHASES.index("lift")
     env.rw_gather_params = prm
-    env.rw_gather = ws.RewardGather(
-        t=wp.zeros(W, dtype=wp.int64, device=dev),
-        lift_start=env.score_state.lift_start,
-        phase=wp.from_torch(env.kernel_tables["phase"]),
-        joint_q=env.physics.state_0.joint_q,
-        joint_qd=env.physics.state_0.joint_qd,
-        body_q=env.physics.state_0.body_q,
-        body_qd=env.physics.state_0.body_qd,
-        **env.world_indices,
-        **env.soft_state,
-        soft_node_count=env.soft_node_count,
-        object_start=wp.from_torch(env.object_start, dtype=wp.vec3),
-    )
-    env.t_rw_step = wp_view(env.rw_gather.t)
+    env.rw_step = wp.zeros(W, dtype=wp.int64, device=dev)  # the step count, copied in per step
+    env.rw_object_start = wp.from_torch(env.object_start, dtype=wp.vec3)
+    env.t_rw_step = wp_view(env.rw_step)
     # The five reward launches replayed as one graph (the buffers above never move): a launch from
     # Python costs ~0.15 ms on the CPU, the kernels at a few worlds microseconds.
     env.reward_launch = Replayed(lambda: _launches(env), [ws, rk], dev, env.cfg.sim.use_graph)
@@ -101,7 +89,15 @@ def allocate(env: GraspEnv) -> None:
 
 def _launches(env: GraspEnv) -> None:
     si = env.score_inputs
-    ws.gather_reward_inputs(env.rw_gather_params, env.rw_gather, env.rw_in, si.obj_pos, si.finite)
+    ws.gather_reward_inputs(
+        env.rw_gather_params,
+        env.world_arrays,
+        env.rw_step,
+        env.rw_object_start,
+        env.rw_in,
+        si.obj_pos,
+        si.finite,
+    )
     rk.compute_rewards(env.rw_in, env.rw_out)
 
 

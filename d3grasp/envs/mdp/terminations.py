@@ -125,7 +125,7 @@ def allocate(env: GraspEnv) -> None:
         pad_force_object=env.sensors.pad_force_object,
         pad_force_true=env.sensors.pad_force_true,
         body_q=env.physics.state_0.body_q,
-        palm_body=env.wp_palm_body,
+        palm_body=wp.array(np.asarray(env.layout.palm_body, dtype=np.int32), dtype=wp.int32, device=dev),
         object_start=wp.from_torch(env.object_start, dtype=wp.vec3),
         disturb_order=wp.from_torch(env.disturb_order),
     )
