@@ -364,11 +364,10 @@ class GraspEnv:
 
         self._launch_step()
         self.episode_length_buf = self.episode_length_buf + 1
-        t = self.episode_length_buf
 
-        # The reward's launches gather the state the scoring reads too (the object, finiteness).
+        # The reward's launches gather the state the scoring reads too (step, object, finiteness).
         rew = rewards.compute_rewards(self)
-        done, time_out = terminations.score(self, t)
+        done, time_out = terminations.score(self)
         self.episode_return += rew
 
         extras: dict[str, Any] = {"time_outs": time_out, "log": {}}

@@ -81,9 +81,10 @@ def _run(env, object_path, palm_path, object_pads, table_pads=None):
         f_true[:] = object_pads(t) + (table_pads(t) if table_pads else 0.0)
         body_q[:, :3] = palm_path(t)
         body_q[:, 6] = 1.0
+        env.t_score_in["t"][:] = tt
         env.t_score_in["obj_pos"][:] = object_path(t)
         env.t_score_in["finite"][:] = True
-        terminations.score(env, tt)
+        terminations.score(env)
         env.episode_length_buf = tt
     return terminations.episode_records(env, torch.arange(W))
 

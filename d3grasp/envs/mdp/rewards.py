@@ -79,11 +79,8 @@ def allocate(env: GraspEnv) -> None:
     prm.finger_half_thickness = FINGER_HALF_THICKNESS
     prm.grasp_phase, prm.lift_phase = PHASES.index("grasp"), PHASES.index("lift")
     env.rw_gather_params = prm
-    env.rw_step = wp.zeros(W, dtype=wp.int64, device=dev)  # the step count, copied in per step
-    env.rw_object_start = wp.from_torch(env.object_start, dtype=wp.vec3)
-    env.t_rw_step = wp_view(env.rw_step)
-    # The five reward launches replayed as one graph (the buffers above never move): a launch from
-    # Python costs ~0.15 ms on the CPU, the kernels at a few worlds microseconds.
+    # The gather and the five reward launches replayed as one graph (the buffers above never move):
+    # a launch from Python costs ~0.15 ms on the CPU, the kernels at a few worlds microseconds.
     env.reward_launch = Replayed(lambda: _launches(env), [ws, rk], dev, env.cfg.sim.use_graph)
 
 
@@ -92,8 +89,8 @@ def _launches(env: GraspEnv) -> None:
     ws.gather_reward_inputs(
         env.rw_gather_params,
         env.world_arrays,
-        env.rw_step,
-        env.rw_object_start,
+        si.t,  # the step count and the objects' start positions: the scoring's inputs, shared
+        si.object_start,
         env.rw_in,
         si.obj_pos,
         si.finite,
@@ -103,8 +100,8 @@ def _launches(env: GraspEnv) -> None:
 
 def compute_rewards(env: GraspEnv) -> torch.Tensor:
     """The step's reward of every world (W,), non-finite values zeroed and clipped at ``reward_clip``;
-    gathers the scoring's object position and finiteness on the way."""
-    env.t_rw_step.copy_(env.episode_length_buf)
+    writes the scoring's inputs on the way: the step count, the object's position and finiteness."""
+    env.t_score_in["t"].copy_(env.episode_length_buf)
     env.reward_launch()
     total = torch.nan_to_num(env.t_reward_total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
     if env.cfg.residual_penalty:

@@ -144,12 +144,11 @@ def allocate(env: GraspEnv) -> None:
     )
 
 
-def score(env: GraspEnv, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Update every world's success metrics after step ``t``; return (done, time_out). The object's
-    position and whether the state is finite (``env.t_score_in["obj_pos"]``, ``["finite"]``) are
-    the reward gather's (``rewards.compute_rewards``), written before."""
+def score(env: GraspEnv) -> tuple[torch.Tensor, torch.Tensor]:
+    """Update every world's success metrics after the step; return (done, time_out). The step count,
+    the object's position and whether the state is finite (``env.t_score_in["t"]``, ``["obj_pos"]``,
+    ``["finite"]``) are written before, by ``rewards.compute_rewards`` (its gather reads them too)."""
     i = env.t_score_in
-    i["t"].copy_(t)
     if env.residual_base is not None:
         # The rule runs inside the env (residual action modes): a hand closed as far as the object
         # lets it is ready to lift too (a hook or a palm grasp need not touch with the thumb's pads).
