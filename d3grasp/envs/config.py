@@ -71,6 +71,10 @@ class SimConfig:
     # Soft objects' tet elasticity by d3grasp.kernels.fem_elasticity (the same forces and Hessians as
     # SolverVBD's kernel in closed form; False = Newton's kernel, to compare)
     closed_form_tets: bool = True
+    # With the closed form on the CPU: each particle iteration adds the nodes' point contacts once
+    # instead of once per colour and places the nodes as it solves them (d3grasp.kernels.
+    # particle_iteration: the same bits; False = SolverVBD's own iteration, to compare)
+    fused_particle_iteration: bool = True
     shape_mu: float = 1.0  # friction of hand and table shapes
     soft_contact_ke: float = 1.0e4
     soft_contact_kd: float = 1.0e-2

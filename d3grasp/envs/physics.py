@@ -18,6 +18,7 @@ from d3grasp.envs.config import SimConfig
 from d3grasp.envs.scene import SceneLayout
 from d3grasp.kernels.chebyshev import use_chebyshev
 from d3grasp.kernels.fem_elasticity import use_closed_form_tets
+from d3grasp.kernels.particle_iteration import use_fused_particle_iteration
 
 
 @wp.kernel
@@ -163,8 +164,13 @@ class Physics:
                 particle_enable_self_contact=False,
                 rigid_body_contact_buffer_size=sim.body_contact_buffer,
             )
-            if sim.closed_form_tets:
-                use_closed_form_tets(self.solver)
+            tets = use_closed_form_tets(self.solver) if sim.closed_form_tets else None
+            if tets is not None and sim.fused_particle_iteration:
+                use_fused_particle_iteration(
+                    self.solver,
+                    tets,
+                    point_contacts_only=not self.pipeline.enable_rigid_soft_full_surface_contact,
+                )
             use_chebyshev(self.solver, sim.soft_chebyshev_rho)
             if sim.soft_rigid_iterations:
                 # A bad value is refused on any model, soft or not.

@@ -12,6 +12,7 @@ from d3grasp.kernels.fem_elasticity import (
     tet_vertex_force_hessian,
     use_closed_form_tets,
 )
+from d3grasp.kernels.particle_iteration import use_fused_particle_iteration
 from d3grasp.kernels.strain import grid_tet_mesh
 from newton._src.solvers.vbd import solver_vbd
 from newton._src.solvers.vbd.particle_vbd_kernels import solve_elasticity as newton_solve_elasticity
@@ -66,16 +67,19 @@ def central_gradient(fun, x: np.ndarray, corner: int, h: float) -> np.ndarray:
 
 @wp.kernel
 def _corner_kernel(
-    pos_prev: wp.array(dtype=wp.vec3),
     pos: wp.array(dtype=wp.vec3),
     tet_indices: wp.array2d(dtype=wp.int32),
     dm_inv: wp.mat33,
+    volume: float,
+    cauchy_green_prev: wp.mat33,
     damping: float,
     forces: wp.array(dtype=wp.vec3),
     hessians: wp.array(dtype=wp.mat33),
 ):
     corner = wp.tid()
-    f, h = tet_vertex_force_hessian(0, corner, pos_prev, pos, tet_indices, dm_inv, MU, LMBD, damping, DT)
+    f, h = tet_vertex_force_hessian(
+        0, corner, pos, tet_indices, dm_inv, volume, cauchy_green_prev, MU, LMBD, damping, DT
+    )
     forces[corner] = f
     hessians[corner] = h
 
@@ -87,10 +91,11 @@ def corner_terms(x: np.ndarray, x_prev: np.ndarray, rest: np.ndarray, damping: f
         _corner_kernel,
         dim=4,
         inputs=[
-            wp.array(x_prev, dtype=wp.vec3),
             wp.array(x, dtype=wp.vec3),
             wp.array([[0, 1, 2, 3]], dtype=wp.int32),
             wp.mat33(np.linalg.inv(edge_matrix(rest)).astype(np.float32)),
+            rest_volume(rest),
+            wp.mat33(ref_cauchy_green(x_prev, rest).astype(np.float32)),
             damping,
         ],
         outputs=[forces, hessians],
@@ -156,7 +161,7 @@ def test_damping_force_is_the_dissipation_gradient_with_a_gauss_newton_hessian()
         np.testing.assert_allclose(damping_hessian, ref, rtol=1e-2, atol=1e-2 * np.abs(ref).max())
 
 
-def soft_grid_model(tri_ke: float = 0.0) -> newton.Model:
+def soft_grid_model(tri_ke: float = 0.0, box_on_top: bool = False) -> newton.Model:
     points, tets = grid_tet_mesh(4, 3, 3, spacing=0.01)
     # Positive orientation for every tet (half of the grid's come inverted): swap two corners.
     e = points[tets[:, 1:]] - points[tets[:, :1]]
@@ -177,6 +182,12 @@ def soft_grid_model(tri_ke: float = 0.0) -> newton.Model:
         tri_ke=tri_ke,
         particle_radius=0.003,
     )
+    if box_on_top:
+        # A 40 g box dropped onto the block: contacts of nodes against a moving body as well.
+        body = builder.add_body(xform=wp.transform((0.015, 0.01, 0.085), wp.quat_identity()))
+        builder.add_shape_box(
+            body, hx=0.01, hy=0.01, hz=0.01, cfg=newton.ModelBuilder.ShapeConfig(density=5000.0)
+        )
     builder.color()
     builder.add_ground_plane()
     return builder.finalize(device="cpu")
@@ -189,8 +200,19 @@ def test_displacements_match_solver_vbds_own_kernel() -> None:
     rng = np.random.default_rng(4)
     rest = model.particle_q.numpy().astype(np.float64)
     x = rest @ (np.eye(3) + 0.1 * rng.normal(size=(3, 3))).T
+    x_prev = x - 1e-4 * rng.normal(size=x.shape)
+    # The closed form reads each tet's rest volume and C = F^T F at the previous positions (NumPy
+    # here) where Newton's signature has the triangles' areas and poses, which a tet model leaves unread.
+    tets = model.tet_indices.numpy()
+    rest_tets = [rest[t] for t in tets]
+    closed_form_slots = {
+        "tri_poses": wp.array(
+            [ref_cauchy_green(x_prev[t], r) for t, r in zip(tets, rest_tets, strict=True)], dtype=wp.mat33
+        ),
+        "tri_areas": wp.array([rest_volume(r) for r in rest_tets], dtype=float),
+    }
     inputs_common = [
-        wp.array(x - 1e-4 * rng.normal(size=x.shape), dtype=wp.vec3),  # previous positions
+        wp.array(x_prev, dtype=wp.vec3),  # previous positions
         wp.array(x, dtype=wp.vec3),
         model.particle_mass,
         wp.array(x + 1e-5 * rng.normal(size=x.shape), dtype=wp.vec3),  # inertia targets
@@ -212,35 +234,48 @@ def test_displacements_match_solver_vbds_own_kernel() -> None:
     ]
     out = {}
     for name, kernel in (("newton", newton_solve_elasticity), ("closed_form", solve_elasticity_tets)):
+        inputs = list(inputs_common)
+        if name == "closed_form":
+            inputs[6], inputs[8] = closed_form_slots["tri_poses"], closed_form_slots["tri_areas"]
         displacement = wp.zeros(len(x), dtype=wp.vec3)
         for group in model.particle_color_groups:
-            wp.launch(kernel, dim=group.size, inputs=[DT, group, *inputs_common], outputs=[displacement])
+            wp.launch(kernel, dim=group.size, inputs=[DT, group, *inputs], outputs=[displacement])
         out[name] = displacement.numpy()
     scale = np.abs(out["newton"]).max()
     assert scale > 1e-6
     np.testing.assert_allclose(out["closed_form"], out["newton"], atol=1e-4 * scale)
 
 
+def drop(model: newton.Model, steps: int, solve: str) -> tuple[np.ndarray, np.ndarray, int]:
+    """``steps`` substeps of 10 iterations with Newton's solve ("newton"), the closed form in
+    Newton's iteration ("closed_form") or the fused iteration ("fused"): final node and body
+    positions and the most soft contacts seen."""
+    solver = newton.solvers.SolverVBD(model, iterations=10, particle_enable_self_contact=False)
+    if solve != "newton":
+        tets = use_closed_form_tets(solver)
+        assert tets is not None
+        if solve == "fused":
+            assert use_fused_particle_iteration(solver, tets, point_contacts_only=True)
+    state_0, state_1, control = model.state(), model.state(), model.control()
+    pipeline = newton.CollisionPipeline(model, soft_contact_gap=0.005)
+    contacts = pipeline.contacts()
+    most_contacts = 0
+    for _ in range(steps):
+        state_0.clear_forces()
+        pipeline.collide(state_0, contacts)
+        most_contacts = max(most_contacts, int(contacts.soft_contact_count.numpy()[0]))
+        solver.step(state_0, state_1, control, contacts, DT)
+        state_0, state_1 = state_1, state_0
+    bodies = state_0.body_q.numpy() if model.body_count else np.zeros((0, 7))
+    return state_0.particle_q.numpy(), bodies, most_contacts
+
+
 def test_solver_steps_with_the_closed_form_follow_newtons() -> None:
     """A soft block dropped onto the ground, 60 substeps of 10 iterations each way: same trajectory."""
-    finals = {}
-    for closed_form in (False, True):
-        model = soft_grid_model()
-        solver = newton.solvers.SolverVBD(model, iterations=10)
-        if closed_form:
-            assert use_closed_form_tets(solver)
-        state_0, state_1, control = model.state(), model.state(), model.control()
-        pipeline = newton.CollisionPipeline(model)
-        contacts = pipeline.contacts()
-        for _ in range(60):
-            state_0.clear_forces()
-            pipeline.collide(state_0, contacts)
-            solver.step(state_0, state_1, control, contacts, DT)
-            state_0, state_1 = state_1, state_0
-        finals[closed_form] = state_0.particle_q.numpy()
+    finals = {solve: drop(soft_grid_model(), 60, solve)[0] for solve in ("newton", "closed_form")}
     # It fell 0.1 s (~5 cm) onto the ground; the two solves agree to well under the particle radius.
-    assert finals[False][:, 2].min() < 0.005
-    np.testing.assert_allclose(finals[True], finals[False], atol=2e-5)
+    assert finals["newton"][:, 2].min() < 0.005
+    np.testing.assert_allclose(finals["closed_form"], finals["newton"], atol=2e-5)
     # The swap lasts only through the closed-form solver's own iterations.
     assert solver_vbd.solve_elasticity is newton_solve_elasticity
 
@@ -249,3 +284,31 @@ def test_only_tet_only_models_get_the_closed_form() -> None:
     assert use_closed_form_tets(newton.solvers.SolverVBD(soft_grid_model(), iterations=1))
     membrane = soft_grid_model(tri_ke=100.0)
     assert not use_closed_form_tets(newton.solvers.SolverVBD(membrane, iterations=1))
+
+
+def test_fused_iteration_follows_newtons_iteration() -> None:
+    """The block on the ground with a box dropped onto it, 120 substeps: the fused iteration (contacts
+    once an iteration, nodes placed by the solve) against the closed form in Newton's iteration. The
+    same arithmetic in the same order: the trajectories agree far below any physical scale (they were
+    bit-identical where measured)."""
+    runs = {solve: drop(soft_grid_model(box_on_top=True), 120, solve) for solve in ("closed_form", "fused")}
+    nodes, bodies, most_contacts = runs["closed_form"]
+    assert most_contacts > 20  # the block's bottom on the ground and its top under the box
+    assert nodes[:, 2].min() < 0.005  # landed
+    assert bodies[0, 2] < 0.08  # the box fell onto the block (it started at 8.5 cm)
+    np.testing.assert_allclose(runs["fused"][0], nodes, rtol=0.0, atol=1e-6)
+    np.testing.assert_allclose(runs["fused"][1], bodies, rtol=0.0, atol=1e-6)
+
+
+def test_fused_iteration_only_where_it_is_the_same_iteration() -> None:
+    model = soft_grid_model()
+    solver = newton.solvers.SolverVBD(model, iterations=1, particle_enable_self_contact=False)
+    tets = use_closed_form_tets(solver)
+    assert not use_fused_particle_iteration(solver, tets, point_contacts_only=False)
+    self_contact = newton.solvers.SolverVBD(
+        soft_grid_model(), iterations=1, particle_enable_self_contact=True
+    )
+    assert not use_fused_particle_iteration(
+        self_contact, use_closed_form_tets(self_contact), point_contacts_only=True
+    )
+    assert use_fused_particle_iteration(solver, tets, point_contacts_only=True)
