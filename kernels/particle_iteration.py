@@ -18,7 +18,7 @@ position plus its accumulated displacement. With 7 colours, 20 iterations and 10
   were. :data:`solve_elasticity_tets_in_place` writes the colour's own positions as it solves them.
 
 On 8 soft worlds the two passes were ~15% of a control step (10.4% and 4.6% by a per-launch profile
-at the grasp, docs/design.md, Where a soft step's time goes). Edge and face contacts, which Newton
+at the grasp, docs/design.md, Work a soft iteration repeated). Edge and face contacts, which Newton
 makes only with ``enable_rigid_soft_full_surface_contact``, read several nodes' positions and keep the
 per-colour pass: the iteration is installed only for point contacts, and only where the solver has
 no self-contact, DAT, springs or particle-body attachments (each adds launches this iteration lacks).
