@@ -48,7 +48,7 @@ from d3grasp.authoring.usd_soft import read_soft_usd  # noqa: E402
 from d3grasp.cli.args import run_command  # noqa: E402
 from d3grasp.console import quiet_warp  # noqa: E402
 from d3grasp.envs.config import SimConfig  # noqa: E402
-from d3grasp.envs.physics import capture_graph, use_closed_form_tets  # noqa: E402
+from d3grasp.envs.physics import capture_graph, use_soft_solve_kernels  # noqa: E402
 from d3grasp.envs.scene import set_tet_damping  # noqa: E402
 from kernels import strain as strain_k  # noqa: E402
 
@@ -116,11 +116,10 @@ def plate_test(
         rigid_contact_history=True,
         particle_enable_self_contact=False,
     )
-    if sim.closed_form_tets:
-        use_closed_form_tets(solver)
     pipeline = newton.CollisionPipeline(
         model, contact_matching="sticky", soft_contact_gap=sim.soft_contact_gap
     )
+    use_soft_solve_kernels(solver, pipeline, sim)
     contacts = pipeline.contacts()
     states = [model.state(), model.state()]
     control = model.control()

@@ -103,6 +103,19 @@ def thin_rigid_iterations(solver: newton.solvers.SolverVBD, runs: list[bool]) ->
     solver._solve_rigid_body_iteration = solve_rigid_some
 
 
+def use_soft_solve_kernels(
+    solver: newton.solvers.SolverVBD, pipeline: newton.CollisionPipeline, sim: SimConfig
+) -> None:
+    """The soft solve's kernels of d3grasp.kernels where ``sim`` asks for them and the model qualifies:
+    the closed-form tets (``sim.closed_form_tets``) and, on the CPU, the particle iteration without its
+    repeated passes (``sim.fused_particle_iteration``). Both give SolverVBD's results."""
+    tets = use_closed_form_tets(solver) if sim.closed_form_tets else None
+    if tets is not None and sim.fused_particle_iteration:
+        use_fused_particle_iteration(
+            solver, tets, point_contacts_only=not pipeline.enable_rigid_soft_full_surface_contact
+        )
+
+
 def capture_graph(launches: Callable[[], None], device: wp.context.Device) -> wp.Graph:
     """``launches`` captured as a Warp graph on ``device`` (run it once before: a capture records
     launches, it does not load modules or size lazy buffers)."""
@@ -164,13 +177,7 @@ class Physics:
                 particle_enable_self_contact=False,
                 rigid_body_contact_buffer_size=sim.body_contact_buffer,
             )
-            tets = use_closed_form_tets(self.solver) if sim.closed_form_tets else None
-            if tets is not None and sim.fused_particle_iteration:
-                use_fused_particle_iteration(
-                    self.solver,
-                    tets,
-                    point_contacts_only=not self.pipeline.enable_rigid_soft_full_surface_contact,
-                )
+            use_soft_solve_kernels(self.solver, self.pipeline, sim)
             use_chebyshev(self.solver, sim.soft_chebyshev_rho)
             if sim.soft_rigid_iterations:
                 # A bad value is refused on any model, soft or not.
