@@ -24,7 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import warp as wp
-from d3grasp.kernels.world_state import WorldArrays, finite, object_state, phase_of
+from d3grasp.kernels.world_state import WorldArrays, finite, object_state, phase_of, soft_strain
 
 __all__ = ["ObservationInputs", "ObservationParams", "compute_observations"]
 
@@ -157,12 +157,7 @@ def _observation_kernel(
 
     # The privileged group.
     pos, rot, lin, ang = object_state(world, w)
-    slot = world.soft_slot[w]
-    eps = float(0.0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a branch)
-    sigma = float(0.0)  # noqa: UP018
-    if slot >= 0:
-        eps = world.soft_eps[slot]
-        sigma = world.soft_sigma[slot]
+    eps, sigma, _nodes = soft_strain(world, w)
     palm = wp.transform_get_translation(world.body_q[world.palm_body[w]])
     o = int(0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
     rel = pos - palm

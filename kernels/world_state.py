@@ -25,6 +25,7 @@ __all__ = [
     "gather_reward_inputs",
     "object_state",
     "phase_of",
+    "soft_strain",
 ]
 
 FLOAT32_MAX = wp.constant(3.4028234663852886e38)
@@ -87,6 +88,16 @@ def object_state(world: WorldArrays, w: int):
 
 
 @wp.func
+def soft_strain(world: WorldArrays, w: int):
+    """World ``w``'s soft object's largest nodal strain, deformable-rotation sigma and node count
+    (zeros for a rigid world)."""
+    slot = world.soft_slot[w]
+    if slot >= 0:
+        return world.soft_eps[slot], world.soft_sigma[slot], world.soft_node_count[slot]
+    return 0.0, 0.0, 0.0
+
+
+@wp.func
 def phase_of(world: WorldArrays, w: int, t: int, grasp: int, lift: int):
     """World ``w``'s phase at step ``t``: the schedule table's, the lift from its own (touch-timed)
     start on."""
@@ -144,12 +155,7 @@ def _gather_kernel(
     object_com[w] = finite3(pos)
     obj_lin_vel[w] = finite3(lin)
     obj_ang_vel[w] = finite3(ang)
-    slot = world.soft_slot[w]
-    eps = float(0.0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a branch)
-    nodes = float(0.0)  # noqa: UP018
-    if slot >= 0:
-        eps = world.soft_eps[slot]
-        nodes = world.soft_node_count[slot]
+    eps, _sigma, nodes = soft_strain(world, w)
     eps_bar[w] = eps
     node_count[w] = nodes
     # The rise above the resting height, counted from the lift phase on.
