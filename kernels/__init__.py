@@ -8,6 +8,21 @@ Submodules (import them directly; nothing here imports Warp):
 - :mod:`d3grasp.kernels.rewards`  -- every reward term of the paper for all worlds.
 - :mod:`d3grasp.kernels.scoring`  -- the success metrics, failure causes and terminations per world.
 - :mod:`d3grasp.kernels.observations` -- the policy's and the critic's observation groups.
+- :mod:`d3grasp.kernels.world_state` -- per-world reads of the state, the reward inputs' gather.
+- :mod:`d3grasp.kernels.fem_elasticity` -- the soft objects' tet solve in closed form.
+- :mod:`d3grasp.kernels.particle_iteration` -- SolverVBD's soft iteration without its repeated passes.
+- :mod:`d3grasp.kernels.chebyshev` -- Chebyshev acceleration of the soft sweeps (off by default).
 """
 
-__all__ = ["observations", "rewards", "rotation", "scoring", "strain", "tactile"]
+__all__ = [
+    "chebyshev",
+    "fem_elasticity",
+    "observations",
+    "particle_iteration",
+    "rewards",
+    "rotation",
+    "scoring",
+    "strain",
+    "tactile",
+    "world_state",
+]

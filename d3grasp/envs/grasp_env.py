@@ -188,7 +188,7 @@ class GraspEnv:
         wa.joint_q, wa.joint_qd = ph.state_0.joint_q, ph.state_0.joint_qd
         wa.body_q, wa.body_qd = ph.state_0.body_q, ph.state_0.body_qd
         wa.finger_q, wa.finger_dof = index(lay.finger_q), index(lay.finger_dof)
-        wa.link_bodies, wa.palm_body = index(lay.link_bodies), index(lay.palm_body)
+        wa.link_bodies, wa.palm_body = index(lay.link_bodies), self.score_inputs.palm_body  # one palm index
         wa.object_body, wa.soft_slot = index(np.maximum(lay.object_body, 0)), index(se.world_soft_slot)
         pose = getattr(se, "pose_buf", None)
         wa.soft_com, wa.soft_quat = soft(pose, "com", wp.vec3), soft(pose, "quat", wp.quat)

@@ -132,11 +132,13 @@ def reference_reward_inputs(env: GraspEnv) -> dict[str, torch.Tensor]:
         "obj_lin_vel": torch.nan_to_num(obj_lin),
         "obj_ang_vel": torch.nan_to_num(obj_ang),
         "env_dist": torch.nan_to_num(height).clamp(min=0.0),
-        "eps_bar": sensors.soft_scalar(sensors.strain_buf.object_eps) if soft else torch.zeros(env.num_envs),
+        "eps_bar": sensors.soft_scalar(sensors.strain_buf.object_eps)
+        if soft
+        else torch.zeros(env.num_envs, device=env.torch_device),
         "node_count": (
             sensors.soft_scalar(sensors.strain_layout.object_node_count)
             if soft
-            else torch.zeros(env.num_envs)
+            else torch.zeros(env.num_envs, device=env.torch_device)
         ),
         "object_rise": torch.where(lifting, rise, torch.zeros_like(rise)),
         "obj_pos": obj_pos,
