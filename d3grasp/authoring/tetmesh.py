@@ -18,6 +18,8 @@ from __future__ import annotations
 import importlib.machinery
 import importlib.util
 import math
+import os
+import tempfile
 from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
@@ -182,28 +184,38 @@ def _ftetwild() -> ModuleType:
 def _run_ftetwild(
     vertices: np.ndarray, faces: np.ndarray, edge_length_r: float, epsilon: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """One fTetWild run (single thread: the machines this runs on are shared)."""
+    """One fTetWild run (single thread: the machines this runs on are shared).
+
+    fTetWild writes its working surface (``__tracked_surface.stl``) into the current directory, so
+    the run happens in a temporary one: an import leaves nothing in the user's folder.
+    """
     ftw = _ftetwild()
-    v, t = ftw.tetrahedralize_mesh(
-        np.ascontiguousarray(vertices, dtype=np.float64),
-        np.ascontiguousarray(faces, dtype=np.uint32),
-        True,  # optimize: improve element quality
-        False,  # skip_simplify: let fTetWild simplify within the envelope
-        float(edge_length_r),
-        0.0,  # edge_length_abs: use the relative length
-        float(epsilon),
-        10.0,  # stop_energy (AMIPS), fTetWild's default
-        True,  # coarsen: fewest tets at the requested quality
-        1,  # num_threads
-        80,  # num_opt_iter
-        6,  # loglevel: quiet
-        True,  # quiet
-        False,  # vtk_ordering
-        False,  # disable_filtering: drop the exterior of the background mesh
-        np.empty((0, 3), dtype=np.float64),
-        np.empty((0, 4), dtype=np.int32),
-        np.empty(0, dtype=np.float64),
-    )
+    cwd = os.getcwd()
+    with tempfile.TemporaryDirectory(prefix="d3grasp_ftetwild_") as scratch:
+        os.chdir(scratch)
+        try:
+            v, t = ftw.tetrahedralize_mesh(
+                np.ascontiguousarray(vertices, dtype=np.float64),
+                np.ascontiguousarray(faces, dtype=np.uint32),
+                True,  # optimize: improve element quality
+                False,  # skip_simplify: let fTetWild simplify within the envelope
+                float(edge_length_r),
+                0.0,  # edge_length_abs: use the relative length
+                float(epsilon),
+                10.0,  # stop_energy (AMIPS), fTetWild's default
+                True,  # coarsen: fewest tets at the requested quality
+                1,  # num_threads
+                80,  # num_opt_iter
+                6,  # loglevel: quiet
+                True,  # quiet
+                False,  # vtk_ordering
+                False,  # disable_filtering: drop the exterior of the background mesh
+                np.empty((0, 3), dtype=np.float64),
+                np.empty((0, 4), dtype=np.int32),
+                np.empty(0, dtype=np.float64),
+            )
+        finally:
+            os.chdir(cwd)
     return np.asarray(v, dtype=np.float64), np.asarray(t, dtype=np.int64)
 
 

@@ -185,12 +185,15 @@ def test_rebuild_reuses_committed_tets(tmp_path, monkeypatch, assert_usda_matche
 
 
 @pytest.mark.skipif(not HAS_TETWILD, reason="pytetwild (authoring extra) not installed")
-def test_tetrahedralize_sphere_volume_orientation_and_count():
+def test_tetrahedralize_sphere_volume_orientation_and_count(tmp_path, monkeypatch):
     from d3grasp.authoring.tetmesh import surface_faces, tetrahedralize
 
     r = 0.03
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=r)
+    monkeypatch.chdir(tmp_path)
     pts, tets = tetrahedralize(sphere, 400)
+    # fTetWild's scratch surface stays out of the caller's folder, which stays current.
+    assert list(tmp_path.iterdir()) == [] and Path.cwd() == tmp_path
     assert pts.dtype == np.float64 and tets.dtype == np.int32
     assert 200 <= len(tets) <= 2000
     vols = _det_volumes(pts, tets.astype(np.int64))
