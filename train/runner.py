@@ -77,6 +77,16 @@ class IterationTiming:
         return self.rollout_s + self.update_s
 
 
+@dataclass
+class TrainingProgress:
+    """What a run has consumed since its first iteration, resumed runs included: env-steps of all
+    ranks and wall-clock seconds (checkpoint saves and object redraws counted). Stored in every
+    checkpoint, so a resumed run's curves continue where the first one stopped."""
+
+    env_steps: int = 0
+    wall_clock_s: float = 0.0
+
+
 class EpisodeStats:
     """Counts of grasp outcomes over finished episodes, grouped by kind, size bin and grasp type."""
 
@@ -193,6 +203,7 @@ class D3GraspRunner(OnPolicyRunner):
         if self.gpu_global_rank != 0:
             self.log_dir = None
         self.timings: list[IterationTiming] = []
+        self.progress = TrainingProgress()
         self.episode_stats = EpisodeStats()
         self.stop_flag = _StopFlag()
         self.logger._store_code_state = self._safe_store_code_state  # type: ignore[method-assign]
@@ -267,6 +278,8 @@ class D3GraspRunner(OnPolicyRunner):
         resample_every = int(self.cfg.get("resample_objects_every") or 0)
         critic_warmup = int(self.cfg.get("critic_warmup_iterations") or 0)
         saved_at = -1
+        t_learn = time.perf_counter()
+        wall_before = self.progress.wall_clock_s
         with self.stop_flag.installed() as stop:
             for it in range(start_it, total_it):
                 t_start = time.perf_counter()
@@ -308,6 +321,8 @@ class D3GraspRunner(OnPolicyRunner):
                     env_steps=steps * self.worlds_all_ranks,
                 )
                 self.timings.append(timing)
+                self.progress.env_steps += timing.env_steps
+                self.progress.wall_clock_s = wall_before + (t_end - t_learn)
                 self._log_iteration(it, start_it, total_it, timing, loss_dict)
 
                 done = self.current_learning_iteration
@@ -437,6 +452,9 @@ class D3GraspRunner(OnPolicyRunner):
             writer.add_scalar("Perf/simulation_time", timing.sim_s, it)
             writer.add_scalar("Perf/simulation_share", timing.sim_s / max(timing.total_s, 1e-9), it)
             writer.add_scalar("Perf/update_share", timing.update_s / max(timing.total_s, 1e-9), it)
+            # Cumulative, over resumed runs too: the curves' env-steps and wall-clock axes.
+            writer.add_scalar("Progress/env_steps", self.progress.env_steps, it)
+            writer.add_scalar("Progress/wall_clock_s", self.progress.wall_clock_s, it)
             for key, value in self.episode_stats.rates().items():
                 writer.add_scalar(key, value, it)
         self.episode_stats.clear()
@@ -478,6 +496,7 @@ class D3GraspRunner(OnPolicyRunner):
         """Atomically save models, optimizer, completed-iteration count and ``checkpoint_infos()``."""
         data = self.alg.save()
         data["iter"] = self.current_learning_iteration
+        data["progress"] = asdict(self.progress)
         data["infos"] = {**self.checkpoint_infos(), **(infos or {})}
         atomic_torch_save(data, path)
         self.logger.save_model(path, self.current_learning_iteration)
@@ -518,4 +537,5 @@ class D3GraspRunner(OnPolicyRunner):
             ) from None
         if load_cfg.get("iteration"):
             self.current_learning_iteration = int(data["iter"])
+            self.progress = TrainingProgress(**data.get("progress", {}))
         return data.get("infos") or {}

@@ -410,6 +410,11 @@ def test_train_resume_play_export(tmp_path: Path, capsys: pytest.CaptureFixture[
     if not REAL_ENV:  # the stand-in's episodes end within these 8 steps; the grasp task's do not
         assert {"Train/mean_reward", "Success/s_lift/all", "Success/s_disturb/kind/rigid"} <= tags
     assert [e.step for e in events.Scalars("Perf/env_steps_per_s")] == [0, 1]
+    # Cumulative progress: 2 worlds x 4 steps an iteration; the wall-clock grows.
+    assert [e.value for e in events.Scalars("Progress/env_steps")] == [8, 16]
+    wall = [e.value for e in events.Scalars("Progress/wall_clock_s")]
+    assert 0 < wall[0] < wall[1]
+    assert data["progress"]["env_steps"] == 16
     assert ckpt.stat().st_size < 10e6
     # Adam steps: epochs x mini-batches per iteration (2 worlds -> 2 mini-batches of one world).
     cfg = make_train_cfg(DEFAULT_TASK)["algorithm"]
@@ -432,6 +437,12 @@ def test_train_resume_play_export(tmp_path: Path, capsys: pytest.CaptureFixture[
         assert env2["phases"]["disturb_per_direction"] == 0.5
     data2 = read_checkpoint(run2 / "model_4.pt")
     assert data2["iter"] == 4
+    # The resumed run continues the first one's env-steps and wall-clock.
+    events2 = EventAccumulator(str(run2))
+    events2.Reload()
+    assert [(e.step, e.value) for e in events2.Scalars("Progress/env_steps")] == [(2, 24), (3, 32)]
+    assert events2.Scalars("Progress/wall_clock_s")[0].value > wall[1]
+    assert data2["progress"]["env_steps"] == 32
     assert {int(s["step"]) for s in data2["optimizer_state_dict"]["state"].values()} == {4 * per_it}
     assert not torch.equal(
         data2["actor_state_dict"]["rnn.rnn.weight_ih_l0"], data["actor_state_dict"]["rnn.rnn.weight_ih_l0"]
