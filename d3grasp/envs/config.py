@@ -84,7 +84,7 @@ class SimConfig:
     # only enters their solve metric while sliding); particle contacts reach full friction only when
     # slipping this fast (a soft puck on the table at half its sliding force: 1.6 mm in 0.5 s at 1e-2,
     # 0.4 mm at 1e-4). 1e-3 held 10 of 24 soft objects through the pushes against 8, and lifted 18
-    # against 20 (seed 0, paired 2-0 both ways: README, Soft objects), so the default stays.
+    # against 20 (seed 0, paired 2-0 both ways: docs/history.md, Soft objects), so the default stays.
     friction_epsilon: float = 1.0e-2
     particle_radius: float = 0.003  # m; Newton's default (0.1 m) explodes small objects
     soft_damping: float | None = None  # override every soft object's damping (else the manifest's)
