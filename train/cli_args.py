@@ -168,6 +168,12 @@ def make_play_parser() -> argparse.ArgumentParser:
         help="object pose for the grasp planner: simulator truth or the RGB-D camera (default: the task's)",
     )
     p.add_argument("--no_export", action="store_true", help="skip the TorchScript/ONNX export")
+    p.add_argument(
+        "--export_dir",
+        default=None,
+        help="folder for policy.pt and policy.onnx (default: exported/ next to the checkpoint; "
+        "for --checkpoint shipped, exported/ in the current folder)",
+    )
     p.add_argument("--latency_steps", type=positive_int, default=200, help="policy steps timed (default 200)")
     p.add_argument("--max_steps", type=positive_int, default=None, help="stop after this many env steps")
     p.add_argument(

@@ -6,7 +6,9 @@
 Prints one line per finished episode (object, kind, size bin, grasp type, s_grasp / s_lift /
 s_disturb, failure reason, peak strain) and the success rates overall and per kind / size bin /
 grasp type; writes ``exported/policy.pt`` (TorchScript) and ``exported/policy.onnx`` next to the
-checkpoint; reports the latency of 200 sequential single-robot policy steps.
+checkpoint (``--export_dir`` elsewhere; the shipped policy's into ``./exported/`` of the current
+folder, since its own exports live in the installed package); reports the latency of 200 sequential
+single-robot policy steps.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from d3grasp.console import set_verbosity  # noqa: E402
 from d3grasp.controllers import Controller, make_controller  # noqa: E402
 from d3grasp.envs import close_env  # noqa: E402
 from d3grasp.envs.registry import get_task  # noqa: E402
-from d3grasp.policies import BASELINE, resolve_checkpoint  # noqa: E402
+from d3grasp.policies import BASELINE, SHIPPED, resolve_checkpoint  # noqa: E402
 from d3grasp.policies.checkpoint import interface_overrides, observation_sizes  # noqa: E402
 from d3grasp.seeding import seed_everything  # noqa: E402
 from d3grasp.viz.rollout import PictureSettings, RolloutPictures  # noqa: E402
@@ -81,6 +83,7 @@ def play(
     log: Callable[[str], None] = print,
     perception: str | None = None,
     pictures: PictureSettings | None = None,
+    export_dir: str | os.PathLike[str] | None = None,
 ) -> PlayResult:
     """Evaluate the checkpoint's deterministic policy until ``episodes`` episodes finished.
 
@@ -88,7 +91,9 @@ def play(
     (``CheckpointError`` on mismatch or a missing file). The LSTM state of a world is zeroed when
     its episode ends, as in training. ``checkpoint="baseline"`` runs the rule-based controller
     (nothing to export or time). ``perception`` ("oracle" | "camera") overrides the task's; ``pictures``
-    records a video, a USD animation and / or a tactile plot of the rollout.
+    records a video, a USD animation and / or a tactile plot of the rollout. ``export_dir``: where
+    the exports go (default ``exported/`` next to the checkpoint; for ``"shipped"``, ``exported/`` in
+    the current folder: the package's files stay as installed).
     """
     get_task(task)
     is_baseline = str(checkpoint) == BASELINE
@@ -117,7 +122,8 @@ def play(
                 "num_actions": int(env.num_actions),
                 "obs_sizes": observation_sizes(env.get_observations()),
             }
-            result.export = export_policy(actor, ckpt.parent / "exported", metadata=meta)
+            out = default_export_dir(str(checkpoint), ckpt) if export_dir is None else Path(export_dir)
+            result.export = export_policy(actor, out, metadata=meta)
             log(f"[d3grasp] exported {result.export.jit} and {result.export.onnx}")
             result.latency = measure_latency(actor, result.export, int(actor.obs_dim), steps=latency_steps)
             for line in result.latency.lines():
@@ -125,6 +131,12 @@ def play(
     finally:
         close_env(env)
     return result
+
+
+def default_export_dir(checkpoint: str, resolved: Path) -> Path:
+    """``exported/`` next to the checkpoint; for the shipped policy ``exported/`` in the current
+    folder, because its own exports are files of the installed package (which may not be writable)."""
+    return Path("exported") if checkpoint == SHIPPED else resolved.parent / "exported"
 
 
 def _rollout(
@@ -197,6 +209,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             env_factory=args.env_factory,
             max_steps=args.max_steps,
             perception=args.perception,
+            export_dir=args.export_dir,
             pictures=PictureSettings(
                 video=args.video,
                 video_fps=args.video_fps,

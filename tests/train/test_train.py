@@ -452,6 +452,7 @@ def test_train_resume_play_export(tmp_path: Path, capsys: pytest.CaptureFixture[
     result = play(
         DEFAULT_TASK, run2 / "model_4.pt", num_envs=2, episodes=3, env_factory=ENV_FACTORY, latency_steps=20
     )
+    assert result.export is not None and result.export.jit == run2 / "exported" / "policy.pt"
     assert len(result.episodes) == 3
     assert result.rates["Success/episodes"] == 3
     assert result.export is not None and result.export.jit.is_file() and result.export.onnx is not None
@@ -468,6 +469,17 @@ def test_train_resume_play_export(tmp_path: Path, capsys: pytest.CaptureFixture[
     # The state matters: the last step with a zero state gives a different action.
     fresh, _, _ = ref.step(seq[-1].astype(np.float64), *ref.zero_state(1))
     assert np.abs(fresh - want).max() > 1e-3
+
+
+def test_exports_go_next_to_the_checkpoint_and_the_shipped_policy_stays_as_installed(tmp_path: Path) -> None:
+    from d3grasp.train.play import default_export_dir
+
+    from d3grasp.policies import shipped_checkpoint
+
+    ckpt = tmp_path / "run" / "model_4.pt"
+    assert default_export_dir(str(ckpt), ckpt) == tmp_path / "run" / "exported"
+    shipped = shipped_checkpoint(DEFAULT_TASK)
+    assert default_export_dir("shipped", shipped) == Path("exported")  # the current folder
 
 
 def test_critic_warmup_leaves_the_actor_unchanged() -> None:
