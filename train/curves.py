@@ -166,16 +166,18 @@ def plot_run(
     out: str | Path,
     window: int = 10,
     baselines: dict[str, float] | None = None,
+    scalars: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> Path:
     """Write the curves PNG of a run (or a run and its resumptions): the return and the reward
     terms against the learning iteration, the success rates against env-steps and wall-clock (the
-    baseline's rates, when given, as dashed lines)."""
+    baseline's rates, when given, as dashed lines). ``scalars``: the runs' ``load_scalars``, when
+    already read."""
     if isinstance(run_dirs, (str, Path)):
         run_dirs = [run_dirs]
     from d3grasp.viz.figure import pyplot, save_figure
 
     plt = pyplot()
-    s = load_scalars(*run_dirs)
+    s = load_scalars(*run_dirs) if scalars is None else scalars
     progress = _progress_axes(s)
     fig, axes = plt.subplots(2, 2, figsize=(13, 8.4))
 
@@ -250,8 +252,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         out = args.out or Path(args.run_dir[-1]) / "curves.png"
-        path = plot_run(args.run_dir, out, args.window, dict(args.baseline))
-        rows = milestones(load_scalars(*args.run_dir), args.milestones, dict(args.baseline), args.window)
+        scalars = load_scalars(*args.run_dir)  # the event files are read once for both
+        path = plot_run(args.run_dir, out, args.window, dict(args.baseline), scalars)
+        rows = milestones(scalars, args.milestones, dict(args.baseline), args.window)
     except FileNotFoundError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
