@@ -18,7 +18,9 @@ from __future__ import annotations
 import importlib.machinery
 import importlib.util
 import math
-import os
+import signal
+import subprocess
+import sys
 import tempfile
 from collections.abc import Callable
 from functools import lru_cache
@@ -158,9 +160,8 @@ def canonical_order(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, n
     return points, tets.astype(np.int32)
 
 
-@lru_cache(maxsize=1)
-def _ftetwild() -> ModuleType:
-    """The compiled fTetWild binding of the ``pytetwild`` wheel.
+def _ftetwild_library() -> Path:
+    """The compiled fTetWild binding of the ``pytetwild`` wheel (its shared library file).
 
     Loaded directly because ``import pytetwild`` pulls in PyVista (and VTK) for an accessor we
     do not use; the binding itself only needs NumPy.
@@ -172,8 +173,14 @@ def _ftetwild() -> ModuleType:
     libs = sorted(pkg_dir.glob("PyfTetWildWrapper*.so")) + sorted(pkg_dir.glob("PyfTetWildWrapper*.pyd"))
     if not libs:
         raise ImportError(f"pytetwild at {pkg_dir} has no compiled PyfTetWildWrapper module")
+    return libs[0]
+
+
+@lru_cache(maxsize=1)
+def _ftetwild() -> ModuleType:
+    """The fTetWild binding loaded into this process (meshing itself runs in a child: _run_ftetwild)."""
     name = "pytetwild.PyfTetWildWrapper"
-    loader = importlib.machinery.ExtensionFileLoader(name, str(libs[0]))
+    loader = importlib.machinery.ExtensionFileLoader(name, str(_ftetwild_library()))
     mod_spec = importlib.util.spec_from_loader(name, loader)
     assert mod_spec is not None
     module = importlib.util.module_from_spec(mod_spec)
@@ -181,42 +188,46 @@ def _ftetwild() -> ModuleType:
     return module
 
 
+class MesherCrash(ValueError):
+    """fTetWild died (a signal or an abort) instead of returning a mesh: one failed attempt."""
+
+
 def _run_ftetwild(
     vertices: np.ndarray, faces: np.ndarray, edge_length_r: float, epsilon: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """One fTetWild run (single thread: the machines this runs on are shared).
-
-    fTetWild writes its working surface (``__tracked_surface.stl``) into the current directory, so
-    the run happens in a temporary one: an import leaves nothing in the user's folder.
-    """
-    ftw = _ftetwild()
-    cwd = os.getcwd()
+    """One fTetWild run (single thread) in a child process (``ftetwild_run.py``): fTetWild crashes
+    on some inputs (thin plates among them), and a crash must cost an attempt, not the import.
+    ``MesherCrash`` when it does. The child runs in a temporary folder, where fTetWild writes its
+    working surface: an import leaves nothing in the user's folder."""
+    library = _ftetwild_library()
     with tempfile.TemporaryDirectory(prefix="d3grasp_ftetwild_") as scratch:
-        os.chdir(scratch)
-        try:
-            v, t = ftw.tetrahedralize_mesh(
-                np.ascontiguousarray(vertices, dtype=np.float64),
-                np.ascontiguousarray(faces, dtype=np.uint32),
-                True,  # optimize: improve element quality
-                False,  # skip_simplify: let fTetWild simplify within the envelope
-                float(edge_length_r),
-                0.0,  # edge_length_abs: use the relative length
-                float(epsilon),
-                10.0,  # stop_energy (AMIPS), fTetWild's default
-                True,  # coarsen: fewest tets at the requested quality
-                1,  # num_threads
-                80,  # num_opt_iter
-                6,  # loglevel: quiet
-                True,  # quiet
-                False,  # vtk_ordering
-                False,  # disable_filtering: drop the exterior of the background mesh
-                np.empty((0, 3), dtype=np.float64),
-                np.empty((0, 4), dtype=np.int32),
-                np.empty(0, dtype=np.float64),
-            )
-        finally:
-            os.chdir(cwd)
-    return np.asarray(v, dtype=np.float64), np.asarray(t, dtype=np.int64)
+        np.savez(
+            Path(scratch) / "in.npz",
+            vertices=np.ascontiguousarray(vertices, dtype=np.float64),
+            faces=np.ascontiguousarray(faces, dtype=np.int64),
+            edge_length_r=float(edge_length_r),
+            epsilon=float(epsilon),
+            library=str(library),
+        )
+        script = Path(__file__).with_name("ftetwild_run.py")
+        proc = subprocess.run(
+            [sys.executable, str(script), scratch], cwd=scratch, capture_output=True, text=True, check=False
+        )
+        out = Path(scratch) / "out.npz"
+        if proc.returncode != 0 or not out.is_file():
+            code = proc.returncode
+            why = f"signal {signal.Signals(-code).name}" if code < 0 else f"exit status {code}"
+            last = (proc.stderr.strip().splitlines() or [""])[-1][:120]
+            raise MesherCrash(f"fTetWild crashed ({why}{': ' + last if last else ''})")
+        with np.load(out) as result:
+            return np.asarray(result["points"], dtype=np.float64), np.asarray(result["tets"], dtype=np.int64)
+
+
+def thickness(mesh: trimesh.Trimesh) -> float:
+    """A closed surface's characteristic thickness (m): the smallest side of its oriented bounding
+    box, or 6 V / A where smaller (a cube's side, a ball's diameter, ~3 walls of a thin shell)."""
+    obb = float(np.min(mesh.bounding_box_oriented.primitive.extents))
+    return min(obb, 6.0 * abs(float(mesh.volume)) / float(mesh.area))
 
 
 def _check_input_surface(mesh: trimesh.Trimesh) -> None:
@@ -274,6 +285,11 @@ def _meshing_advice(failures: list[str], target_tets: int, max_tets: int) -> str
         )
     if failures and all("sliver" in f or "inverted" in f for f in failures):
         return "the meshes had slivers: remove near-degenerate triangles or very thin features"
+    if failures and all(f.endswith("-> 0 tets") for f in failures):
+        return (
+            "fTetWild gave no mesh (or crashed) at every setting tried: remesh the surface evenly (no "
+            "long sliver triangles) or thicken its thinnest part"
+        )
     return f"simplify the surface or change --target-tets (now {target_tets})"
 
 
@@ -319,18 +335,41 @@ def tetrahedralize(
     # Measured on spheres, capsules and boxes (eps 1e-2, coarsening on): an ideal edge of ~0.12
     # bounding-box diagonals gives a few hundred tets, and T falls roughly like edge^-1.3.
     edge = 0.12
+    # fTetWild's envelope (epsilon x diagonal) kept within an eighth of the body's thickness: on a
+    # 12 x 2 x 0.4 cm bar an envelope of a quarter of the thickness or more (eps >= 0.008) gave no
+    # tets or crashed fTetWild at every edge from 0.02 to 0.05 diagonals, and the envelope used to be
+    # doubled after each empty mesh; at eps <= 0.006 every edge meshed (measured). A compact body's
+    # bound (~0.07 for a ball or a cube) is above any envelope used here. The envelopes stay those of
+    # 0.01 halved and doubled, as for every other body: a 12 cm x 3 mm rod meshed at 0.01 / 8 (1,633
+    # tets); started at its bound of 0.0031 instead, no attempt passed (at 0.0016 it lost 5% of its
+    # volume).
+    diag = float(np.linalg.norm(work.extents))
+    max_epsilon = thickness(work) / (8.0 * diag)
     epsilon = 1e-2
+    while epsilon > max_epsilon and epsilon > 1e-6:
+        epsilon /= 2.0
     too_fine, too_coarse = 0.0, math.inf
     best: tuple[float, np.ndarray, np.ndarray] | None = None
     failures: list[str] = []
     for attempt in range(max_attempts):
         edge = float(np.clip(edge, 0.01, 0.9))
-        pts, tets = _run_ftetwild(work.vertices, work.faces, edge, epsilon)
+        msg = f"attempt {attempt}: edge {edge:.3f} x diag, eps {epsilon:.1e}"
+        try:
+            pts, tets = _run_ftetwild(work.vertices, work.faces, edge, epsilon)
+        except MesherCrash as exc:
+            pts, tets, msg = np.empty((0, 3)), np.empty((0, 4), dtype=np.int64), f"{msg}: {exc}"
         n = len(tets)
-        msg = f"attempt {attempt}: edge {edge:.3f} x diag, eps {epsilon:.0e} -> {n} tets"
+        msg = f"{msg} -> {n} tets"
         if n == 0:
             failures.append(msg)
-            epsilon *= 2.0
+            if log:
+                log(msg)
+            # A wider envelope lets fTetWild simplify more; at the thickness's bound, a coarser
+            # background mesh is another try (the failures come at some edges and not others).
+            if epsilon * 2.0 <= max_epsilon:
+                epsilon *= 2.0
+            else:
+                edge *= 1.25
             continue
         tets = orient_positive(pts, tets)
         pts, tets = canonical_order(pts, tets)
@@ -343,7 +382,7 @@ def tetrahedralize(
             failures.append(f"{msg} rejected ({exc})")
             if log:
                 log(failures[-1])
-            epsilon = max(epsilon / 2.0, 5e-4)
+            epsilon = min(max(epsilon / 2.0, 5e-4), epsilon)
             continue
         if log:
             log(msg)
@@ -364,7 +403,7 @@ def tetrahedralize(
         else:
             edge *= (n / target_tets) ** (1.0 / 1.5)
         if n > target_tets and edge >= 0.9:
-            epsilon *= 2.0  # surface detail dominates: let fTetWild simplify more
+            epsilon = min(2.0 * epsilon, max(max_epsilon, epsilon))  # surface detail dominates: simplify more
     if best is None:
         detail = "; ".join(failures[-2:]) or "no valid mesh"
         raise ValueError(

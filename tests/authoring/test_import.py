@@ -228,6 +228,26 @@ def test_import_deformable_sphere(tmp_path: Path) -> None:
     assert report.assets[0].checks["material: k_mu"] and k_mu > 0
 
 
+@pytest.mark.parametrize("extents", [(0.12, 0.02, 0.004), (0.12, 0.02, 0.001)], ids=["4mm", "1mm"])
+def test_import_flat_soft_bar(tmp_path: Path, extents: tuple[float, float, float]) -> None:
+    """A flat bar took the mesher down: fTetWild crashed the importing process (segmentation fault,
+    or a double free) once its envelope grew past a quarter of the bar's thickness. The envelope is
+    bounded by the thickness and the mesher runs in a child process: the bar is meshed."""
+    tetmesh = pytest.importorskip("d3grasp.authoring.tetmesh")
+    try:
+        tetmesh._ftetwild_library()
+    except ImportError:
+        pytest.skip("pytetwild not installed")
+    src = tmp_path / "bar.stl"
+    trimesh.creation.box(extents=extents).export(src)
+    (e,) = import_meshes(
+        [src], tmp_path / "lib", deformable=True, youngs_modulus=3e4, poissons_ratio=0.3, density=150.0
+    ).entries
+    assert e.kind == "deformable" and 200 <= e.stats["num_tets"] <= 2000
+    assert e.volume == pytest.approx(float(np.prod(extents)), rel=0.05)
+    assert sorted(e.extents) == pytest.approx(sorted(extents), rel=0.1)
+
+
 def test_import_on_two_processes_writes_what_one_writes(tmp_path: Path) -> None:
     # Authoring runs one mesh per process (coacd takes minutes on a many-part shape); the files and
     # the manifest must not depend on how many processes wrote them.

@@ -220,6 +220,33 @@ def test_tetrahedralize_refuses_open_mesh():
         tetrahedralize(box, target_tets=5000)
 
 
+@pytest.mark.skipif(not HAS_TETWILD, reason="pytetwild (authoring extra) not installed")
+def test_a_mesher_crash_is_a_failed_attempt(monkeypatch):
+    from d3grasp.authoring import tetmesh
+
+    # A run that crashes fTetWild (pytetwild 0.4.2: a flat bar at an edge of 0.03 diagonals and an
+    # envelope of 0.01, SIGSEGV) ends in MesherCrash, not in the death of this process.
+    bar = trimesh.creation.box([0.12, 0.02, 0.004])
+    try:
+        tetmesh._run_ftetwild(bar.vertices, bar.faces, 0.03, 0.01)
+    except tetmesh.MesherCrash as exc:
+        assert str(exc).startswith("fTetWild crashed (")
+    # And the meshing goes on after one: the first attempt crashes, the next ones mesh.
+    real, calls = tetmesh._run_ftetwild, []
+
+    def crashing_once(*args):
+        calls.append(args)
+        if len(calls) == 1:
+            raise tetmesh.MesherCrash("fTetWild crashed (signal SIGSEGV)")
+        return real(*args)
+
+    monkeypatch.setattr(tetmesh, "_run_ftetwild", crashing_once)
+    logs = []
+    _, tets = tetmesh.tetrahedralize(trimesh.creation.box([0.05, 0.05, 0.05]), 400, log=logs.append)
+    assert "fTetWild crashed (signal SIGSEGV) -> 0 tets" in logs[0]
+    assert len(calls) >= 2 and 200 <= len(tets) <= 2000
+
+
 def test_surface_faces_two_tets_and_orientation_fix():
     from d3grasp.authoring.tetmesh import orient_positive, surface_faces
 
