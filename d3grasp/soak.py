@@ -14,7 +14,9 @@ counts:
   (``GraspEnv.nonfinite_resets``); the soak adds those up;
 - non-finite observations or rewards returned to the caller (after the reset: should be 0);
 - crashes: exceptions out of ``step``; the soak records the error, rebuilds and goes on;
-- the process's peak resident memory after each build (a leak across rebuilds shows here).
+- the process's peak resident memory after each build, and its resident memory after each
+  segment's environment is closed: a leak across rebuilds climbs in the second, while the first, a
+  lifetime maximum, also climbs with every draw that needs more memory than any before it.
 
 Progress is saved to ``--state`` (JSON, written atomically) after every build segment, and
 ``--resume`` continues from it, so a soak of 10^6 env-steps can span several sessions. Segment
@@ -59,12 +61,13 @@ class SoakReport:
     nonfinite_returned: int = 0  # env-steps whose observation or reward reached the caller non-finite
     crashes: list[str] = field(default_factory=list)  # "segment k, step s: <error>"
     peak_rss_mb: list[float] = field(default_factory=list)  # after each build
+    rss_after_close_mb: list[float] = field(default_factory=list)  # after each segment's env is closed
     wall_s: float = 0.0
 
     def summary(self) -> str:
         rate = self.env_steps / self.wall_s if self.wall_s > 0 else math.nan
         endings = ", ".join(f"{k} {v}" for k, v in sorted(self.endings.items(), key=lambda kv: -kv[1]))
-        rss = self.peak_rss_mb
+        rss, closed = self.peak_rss_mb, self.rss_after_close_mb
         return "\n".join(
             [
                 f"soak: {self.task}, {self.num_envs} worlds ({self.soft_fraction:.0%} soft), seed "
@@ -78,6 +81,10 @@ class SoakReport:
                 "non-finite by object: "
                 + (", ".join(f"{k} {v}" for k, v in sorted(self.nonfinite_objects.items())) or "-"),
                 f"peak RSS after builds: first {rss[0]:.0f} MB, last {rss[-1]:.0f} MB" if rss else "",
+                f"RSS after closing: first {closed[0]:.0f} MB, largest {max(closed):.0f} MB, last "
+                f"{closed[-1]:.0f} MB"
+                if closed
+                else "",
                 *(f"crash: {c}" for c in self.crashes[:10]),
             ]
         ).rstrip()
@@ -104,6 +111,15 @@ def _load(path: Path, expect: dict[str, Any]) -> SoakReport:
 
 def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
+
+
+def _rss_mb() -> float:
+    """The process's resident memory now (MB; NaN where /proc is absent)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        return math.nan
 
 
 # The widest finger authority the residual action modes offer (0.4 rad, integrated, from t = 0), not the
@@ -206,7 +222,8 @@ def run_soak(
                     bar.update(num_envs)
         finally:
             report.nonfinite_worlds += env.nonfinite_resets  # a fresh env counts from 0
-            close_env(env)
+            close_env(env)  # frees the worlds at once (GraspEnv.close)
+            report.rss_after_close_mb.append(round(_rss_mb(), 1))
         report.env_steps += done_steps * num_envs
         report.episodes = sum(endings.values())
         report.endings = dict(endings)

@@ -16,6 +16,7 @@ def test_soak_counts_segments_and_resumes(tmp_path: Path) -> None:
     first = run_soak(8, **kw)
     # 8 env-steps at 2 worlds, rebuilt every 4: two builds of two control steps each.
     assert (first.env_steps, first.segments, len(first.peak_rss_mb)) == (8, 2, 2)
+    assert len(first.rss_after_close_mb) == 2 and "RSS after closing: first" in first.summary()
     assert first.crashes == [] and first.nonfinite_returned == 0
     saved = json.loads(state.read_text())
     assert saved["env_steps"] == 8 and saved["soft_fraction"] == 0.5

@@ -67,7 +67,10 @@ def make_train_parser() -> argparse.ArgumentParser:
     add_common_args(p)
     p.add_argument("--max_iterations", type=positive_int, default=None, help="PPO iterations to run")
     p.add_argument(
-        "--num_steps_per_env", type=positive_int, default=None, help="rollout length per iteration"
+        "--num_steps_per_env",
+        type=positive_int,
+        default=None,
+        help="rollout length per iteration (default: one episode)",
     )
     p.add_argument("--save_interval", type=positive_int, default=None, help="checkpoint every N iterations")
     p.add_argument(

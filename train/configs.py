@@ -25,12 +25,17 @@ import copy
 from typing import Any
 
 from d3grasp.envs.registry import DEFAULT_TASK, get_task
+from d3grasp.vocabulary import PHASES
 
 __all__ = ["DEFAULT_TASK", "experiment_name", "fit_mini_batches", "make_train_cfg", "set_cfg_value"]
 
 # Shared by every task; per-task differences are applied in make_train_cfg.
 _BASE_CFG: dict[str, Any] = {
-    "num_steps_per_env": 24,  # rollout length per world and iteration = truncated-BPTT window of the LSTM
+    # Rollout length per world and iteration = the LSTM's truncated-BPTT window. "episode": the
+    # environment's episode length, so every update holds whole episodes (~one per world) from every
+    # phase. With 24-step rollouts ~70% of the worlds ended at the same step, a batch was mostly one
+    # phase, ~9 episodes finished per update, and the LSTM never saw a grasp and its push in one window.
+    "num_steps_per_env": "episode",
     "max_iterations": 1500,
     "save_interval": 50,
     # Rebuild the worlds with other objects every N iterations (0: never). A Newton model holds one
@@ -55,7 +60,9 @@ _BASE_CFG: dict[str, Any] = {
     # returns of -70 (no grasp) to +400 (held through the push) are noise. Measured: without warm-up the
     # training s_lift was 0.30-0.37 over iterations 20-50, with 30 warm-up iterations (and lr 1e-4,
     # std 0.15) 0.53-0.64; the decline came later all the same (docs/design.md, Fine-tuning the residual).
-    "critic_warmup_iterations": 20,
+    # With whole-episode rollouts an iteration holds ~11x the samples of the 24-step ones these 20
+    # iterations were measured with: 3 give the critic about as many samples.
+    "critic_warmup_iterations": 3,
     "actor": {
         "class_name": "RNNModel",
         "rnn_type": "lstm",
@@ -80,21 +87,36 @@ _BASE_CFG: dict[str, Any] = {
         "obs_normalization": True,
     },
     "algorithm": {
-        "class_name": "PPO",
+        # rsl-rl's PPO with action-effect masks, scaled rewards, a bound loss and diagnostics
+        # (d3grasp.train.ppo)
+        "class_name": "d3grasp.train.ppo:D3GraspPPO",
         "learning_rate": 1.0e-4,
         "schedule": "fixed",  # adaptive collapses to its floor at CPU batch sizes (module docstring)
         "desired_kl": 0.01,  # only read by the adaptive schedule
         "num_learning_epochs": 5,
         "num_mini_batches": 4,
         "clip_param": 0.2,
-        "gamma": 0.99,
-        "lam": 0.95,
+        # The outcome (the scored push) comes 120-240 control steps after the fingers close. With
+        # gamma 0.99 and lam 0.95 (gamma * lam)^k fell by e in ~17 steps, so grasp-phase advantages were
+        # the critic's one-step errors. The horizon is fixed and the clock observed, so no discount is
+        # needed (gamma 1); lam 0.99 keeps e^-1 of the outcome's credit 100 steps back (docs/design.md,
+        # Training from a delayed outcome).
+        "gamma": 1.0,
+        "lam": 0.99,
         "value_loss_coef": 1.0,
         "entropy_coef": 0.0,  # the residual starts at the rule: no reward for widening the noise
         "max_grad_norm": 1.0,
-        "use_clipped_value_loss": True,
+        # The clip is in return units: 0.2 on returns of hundreds froze each sample's value after it had
+        # moved 0.2. Returns are scaled (reward_scale) and the value loss is not clipped.
+        "use_clipped_value_loss": False,
         "normalize_advantage_per_mini_batch": False,
         "optimizer": "adam",
+        # Rewards x 0.01 for PPO: returns of -70 to +600 become O(1-10), the critic's range.
+        "reward_scale": 0.01,
+        # coef * relu(|mean| - 1)^2: an action mean past the environment's clamp gets no gradient from
+        # the outcome (thumb means of +1.03 to +1.17 were measured); this brings it back.
+        "bound_loss_coef": 10.0,
+        "phase_names": list(PHASES),
     },
 }
 

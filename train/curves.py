@@ -10,7 +10,8 @@ logged per finished batch of episodes (``Success/s_*/all``, smoothed over a wind
 holds only a few episodes) against the env-steps and the wall-clock the run had consumed
 (``Progress/*``, cumulative over resumptions). Prints a table of the iteration, env-steps and
 wall-clock at which each smoothed rate first reached each milestone (and first exceeded the
-baseline's rate, when given).
+baseline's rate, when given), and the training diagnostics (``Diagnostics/*``, d3grasp.train.ppo)
+summarised over a window of iterations (``--diagnostics_window``, default 10-50).
 """
 
 from __future__ import annotations
@@ -26,7 +27,10 @@ import numpy as np
 from d3grasp.vocabulary import METRICS
 
 __all__ = [
+    "DiagnosticSummary",
     "Milestone",
+    "diagnostics_markdown",
+    "diagnostics_summary",
     "load_scalars",
     "main",
     "milestones",
@@ -220,6 +224,57 @@ def plot_run(
     return save_figure(fig, out, dpi=90)
 
 
+@dataclass(frozen=True)
+class DiagnosticSummary:
+    """One ``Diagnostics/*`` tag over a window of iterations: the median, the lowest and highest, the
+    count of iterations with a finite value, and the last logged value."""
+
+    tag: str
+    median: float
+    low: float
+    high: float
+    count: int
+    last: float
+
+
+def diagnostics_summary(
+    scalars: dict[str, tuple[np.ndarray, np.ndarray]], first: int = 10, last: int = 50
+) -> list[DiagnosticSummary]:
+    """The training diagnostics (``Diagnostics/*``: episodes per update, the critic's explained
+    variance overall and per phase, the split-half gradient cosine; d3grasp.train.ppo) over the
+    iterations ``first`` to ``last`` inclusive. Tags with no finite value in the window are left out."""
+    rows = []
+    for tag in sorted(t for t in scalars if t.startswith("Diagnostics/")):
+        steps, values = scalars[tag]
+        sel = values[(steps >= first) & (steps <= last)]
+        sel = sel[np.isfinite(sel)]
+        if len(sel) == 0:
+            continue
+        rows.append(
+            DiagnosticSummary(
+                tag=tag.removeprefix("Diagnostics/"),
+                median=float(np.median(sel)),
+                low=float(sel.min()),
+                high=float(sel.max()),
+                count=len(sel),
+                last=float(values[-1]),
+            )
+        )
+    return rows
+
+
+def diagnostics_markdown(rows: Sequence[DiagnosticSummary], first: int, last: int) -> str:
+    if not rows:
+        return f"no training diagnostics logged in iterations {first}-{last}"
+    lines = [
+        f"| diagnostic (iterations {first}-{last}) | median | min | max | iterations | last |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(f"| {r.tag} | {r.median:.3f} | {r.low:.3f} | {r.high:.3f} | {r.count} | {r.last:.3f} |")
+    return "\n".join(lines)
+
+
 def _baseline_arg(text: str) -> tuple[str, float]:
     metric, sep, value = text.partition("=")
     if not sep or metric not in METRICS:
@@ -249,6 +304,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="METRIC=RATE",
         help="the baseline's rate under the training conditions (e.g. s_lift=0.75): when it was beaten",
     )
+    p.add_argument(
+        "--diagnostics_window",
+        type=int,
+        nargs=2,
+        default=[10, 50],
+        metavar=("FIRST", "LAST"),
+        help="iterations over which the training diagnostics are summarised (default 10 50)",
+    )
     args = p.parse_args(argv)
     try:
         out = args.out or Path(args.run_dir[-1]) / "curves.png"
@@ -259,6 +322,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(milestones_markdown(rows))
+    first, last = args.diagnostics_window
+    print(diagnostics_markdown(diagnostics_summary(scalars, first, last), first, last))
     print(path)
     return 0
 

@@ -163,6 +163,21 @@ class _StopFlag:
                 signal.signal(sig, handler)
 
 
+def format_diagnostics(diagnostics: dict[str, float]) -> str:
+    """The console line of an update's diagnostics (D3GraspPPO.diagnose)."""
+    d = diagnostics
+    phases = " ".join(
+        f"{k.removeprefix('explained_variance_')} {v:.2f}"
+        for k, v in d.items()
+        if k.startswith("explained_variance_")
+    )
+    return (
+        f"{'Diagnostics:':>35} episodes {d.get('episodes_per_update', float('nan')):.0f} | "
+        f"grad cosine (split half) {d.get('grad_cosine_split_half', float('nan')):+.3f} | "
+        f"explained variance {d.get('explained_variance', float('nan')):.2f} ({phases})"
+    )
+
+
 def scale_actor_output(actor: torch.nn.Module, scale: float, num_actions: int) -> None:
     """Multiply the action-mean rows of the actor's last linear layer by ``scale`` and zero their bias.
 
@@ -196,6 +211,9 @@ class D3GraspRunner(OnPolicyRunner):
         env_builder: Callable[[int], Any] | None = None,
     ) -> None:
         self.task_name = task_name if task_name is not None else train_cfg.get("task")
+        if train_cfg.get("num_steps_per_env") == "episode":
+            # Whole episodes per update (the task config's default): rollouts as long as the episode.
+            train_cfg["num_steps_per_env"] = int(env.max_episode_length)
         # draw index -> a fresh environment with other objects (``resample_objects_every``)
         self.env_builder = env_builder
         super().__init__(env, train_cfg, None if log_dir is None else str(log_dir), device)
@@ -290,6 +308,7 @@ class D3GraspRunner(OnPolicyRunner):
                         if stop.requested and not self.is_distributed:
                             interrupted = True  # weights are those of the last update: save them
                             break
+                        self._record_step(env)
                         actions = self.alg.act(obs)
                         t_sim = time.perf_counter()
                         obs, rewards, dones, extras = env.step(actions.to(env.device))
@@ -308,6 +327,8 @@ class D3GraspRunner(OnPolicyRunner):
                         break
                     t_rollout = time.perf_counter()
                     self.alg.compute_returns(obs)
+                diagnostics = self.alg.diagnose() if hasattr(self.alg, "diagnose") else {}
+                self.alg.actor_frozen = it < critic_warmup  # the actor's normaliser too (D3GraspPPO)
                 with self._actor_frozen(it < critic_warmup):
                     loss_dict = self.alg.update()
                 t_end = time.perf_counter()
@@ -323,7 +344,7 @@ class D3GraspRunner(OnPolicyRunner):
                 self.timings.append(timing)
                 self.progress.env_steps += timing.env_steps
                 self.progress.wall_clock_s = wall_before + (t_end - t_learn)
-                self._log_iteration(it, start_it, total_it, timing, loss_dict)
+                self._log_iteration(it, start_it, total_it, timing, loss_dict, diagnostics)
 
                 done = self.current_learning_iteration
                 if self.log_dir is not None and done % int(self.cfg["save_interval"]) == 0:
@@ -430,8 +451,24 @@ class D3GraspRunner(OnPolicyRunner):
         torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
         return bool(flag.item() > 0)
 
+    def _record_step(self, env: Any) -> None:
+        """Tell the algorithm which worlds' coming actions take effect and in which phase (for its
+        masks and the per-phase diagnostics); environments without these report nothing."""
+        record = getattr(self.alg, "record_step", None)
+        if record is None:
+            return
+        active = env.action_takes_effect() if hasattr(env, "action_takes_effect") else None
+        phase = env.phase_of(env.episode_length_buf) if hasattr(env, "phase_of") else None
+        record(active, phase)
+
     def _log_iteration(
-        self, it: int, start_it: int, total_it: int, timing: IterationTiming, loss_dict: dict[str, float]
+        self,
+        it: int,
+        start_it: int,
+        total_it: int,
+        timing: IterationTiming,
+        loss_dict: dict[str, float],
+        diagnostics: dict[str, float] | None = None,
     ) -> None:
         if self.is_distributed:
             self.episode_stats.all_reduce()  # every rank takes part, rank 0 writes
@@ -457,6 +494,10 @@ class D3GraspRunner(OnPolicyRunner):
             writer.add_scalar("Progress/wall_clock_s", self.progress.wall_clock_s, it)
             for key, value in self.episode_stats.rates().items():
                 writer.add_scalar(key, value, it)
+            for key, value in (diagnostics or {}).items():
+                writer.add_scalar(f"Diagnostics/{key}", value, it)
+        if diagnostics and self.gpu_global_rank == 0:
+            print(format_diagnostics(diagnostics))
         self.episode_stats.clear()
 
     def _safe_store_code_state(self) -> list[str]:

@@ -6,7 +6,7 @@
                           [--skip-invalid] [--no-plan-grasps] [--workers N]
     d3grasp-assets validate [DIR|MANIFEST] [--no-hand]
     d3grasp-assets list [DIR|MANIFEST]
-    d3grasp-assets plan-grasps [DIR|MANIFEST] [--ids A,B] [--seed S] [--workers N] [--per-type K]
+    d3grasp-assets plan-grasps DIR|MANIFEST [--ids A,B] [--seed S] [--workers N] [--per-type K]
 
 Exit status: 0 success, 1 validation failure, 2 bad input (one line ``error: <file>: <reason>``;
 nothing written), 3 ``import --skip-invalid`` wrote some meshes and refused others (one line
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import os
 import sys
 import time
 from collections.abc import Iterable
@@ -180,6 +181,15 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def cmd_plan_grasps(args: argparse.Namespace) -> int:
+    if args.path is None:
+        # The plan is written next to the manifest it plans: with no library named that would be the
+        # installed package's own folder, which a system-wide install cannot write (and a user's
+        # plan does not belong in). The shipped library is replanned by naming it, in a checkout.
+        return _error(
+            "plan-grasps writes grasps.json next to the library's manifest.json: name the library "
+            "folder (d3grasp-assets plan-grasps DIR), e.g. the --out folder of your import, or "
+            "assets_usd/ of a source checkout to replan the shipped library"
+        )
     ids = [i for i in args.ids.split(",") if i] if args.ids else None
     return _plan_grasps(_resolve_manifest(args.path), ids, args.seed, args.workers, args.per_type)
 
@@ -202,6 +212,13 @@ def _plan_grasps(
     quiet_warp()
     if not manifest.is_file():
         return _error(f"{manifest}: manifest not found")
+    if not os.access(manifest.parent, os.W_OK):
+        # Refused before any trial runs: the plan is written (atomically, so into this folder) as
+        # each group of objects finishes, and an hour of planning would end in a PermissionError.
+        return _error(
+            f"{manifest.parent}: not writable, and grasps.json is written there; copy the library to a "
+            "folder you can write and plan that copy (d3grasp-assets plan-grasps COPY)"
+        )
     cfg = PlannerConfig(seed=seed)
     if per_type is not None:
         cfg = replace(cfg, candidates=replace(cfg.candidates, per_type=per_type))
@@ -341,7 +358,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="score candidate grasps of every object in simulation; write the best per type to grasps.json",
     )
     p.add_argument(
-        "path", nargs="?", help="library directory or manifest.json (default: the shipped library)"
+        "path",
+        nargs="?",  # checked by the command: its one-line error says what to give
+        help="library directory or manifest.json; grasps.json is written next to the manifest",
     )
     p.add_argument("--ids", help="comma-separated asset ids (default: every object of the manifest)")
     p.add_argument("--seed", type=int, default=0, help="candidate seed (same seed, same plan)")

@@ -68,7 +68,7 @@ def bench_one(
         raise RuntimeError("the env benchmark times the captured step: sim.use_graph must be on")
     physics_s: list[float] = []
     sensors_s: list[float] = []
-    env._launch_step = _timed_physics_launch(env, physics_s, sensors_s)
+    env.step_launcher = _timed_physics_launch(env, physics_s, sensors_s)
     actions = torch.zeros(worlds, env.num_actions, device=env.torch_device)
     steps = max(1, round(episodes * (int(env.max_episode_length) - 1)))
     step_s = 0.0

@@ -6,7 +6,7 @@ runner config). Times are in seconds and converted to control steps by the envir
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 from d3grasp.kernels.rewards import RewardConfig
 from d3grasp.kernels.tactile import TactileConfig
@@ -138,6 +138,12 @@ class ObservationConfig:
     link_distance_scale: float = 10.0  # privileged: hand link to object distances (m) x 10
     sigma_scale: float = 100.0  # privileged: the deformable rotation's sigma (m^2) x 100
     log_youngs_per_unit: float = 6.0  # privileged: log10 of Young's modulus (Pa) / 6
+    # The episode clock's period (s): t / T, sin and cos of 2 pi t / T with T fixed in seconds, so that
+    # training and evaluation read the same clock at the same time. It used to be each environment's
+    # own episode length (270 steps in the training recipe, 930 in evaluation), so every trained policy
+    # read an unfamiliar clock when evaluated. 4.5 s is the training recipe's episode: the shipped
+    # policy was trained with exactly this clock and now reads it in evaluation too.
+    clock_period: float = 4.5
 
 
 @dataclass
@@ -250,6 +256,10 @@ class GraspEnvConfig:
             stability_lin=0.1,
             stability_ang=0.01,
             lift=3.0,
+            # The generic term's ||q - q_ref||^2 with q_ref never written (zeros) charged a closed hand
+            # ~0.16 per step (16 joints near 1 rad): a cost on gripping. The rule's targets are the
+            # reference posture here, and leaving them is what residual_penalty charges: k_j off.
+            joint_pos=0.0,
         )
     )
     # Per-step reward clip (0: off). A soft body that blows up or an object flung at metres per second
@@ -263,6 +273,13 @@ class GraspEnvConfig:
     # PPO's noisy updates move the mean offset and the rule's equilibrium grip is lost. This term
     # makes the rule the default that an offset has to pay for.
     residual_penalty: float = 0.02
+    # Added to the reward of an episode's last step, per success the scoring gives it (s_lift, s_disturb).
+    # The dense terms barely see s_disturb: the lift term reads the object's absolute rise, so a slip of
+    # 2 cm under the push (an s_disturb failure) costs a few tenths of a point of return against ~+450
+    # for a held object. These terms are what is scored, counted exactly as the metric counts it
+    # (d3grasp.kernels.scoring). Not clipped by ``reward_clip`` (a terminal outcome, not a blow-up).
+    success_bonus_lift: float = 50.0
+    success_bonus_disturb: float = 100.0
     tactile: TactileConfig = field(default_factory=TactileConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
 
@@ -281,10 +298,33 @@ residual_rate of 0.08 against 0 reads and writes the same tensors), so checkpoin
 loading one into an environment with other values is refused rather than silently run."""
 
 
+# The key of a policy interface that holds the observation settings (``ObservationConfig``, by field).
+# A changed scale (or the clock's period) leaves every observation size the same and changes what the
+# policy sees, so they are recorded and checked like the action settings above.
+OBSERVATION_INTERFACE = "obs"
+
 # What a checkpoint recorded before a POLICY_INTERFACE setting existed: the behaviour it was trained with.
-POLICY_INTERFACE_BEFORE: dict[str, object] = {"residual_start": "approach"}
+# The observation settings are those of the checkpoints from before their record (the shipped mixed_v0
+# among them): the defaults of then, written out rather than read from ObservationConfig, so that a
+# later change of a default refuses those checkpoints instead of feeding them other scales.
+POLICY_INTERFACE_BEFORE: dict[str, object] = {
+    "residual_start": "approach",
+    OBSERVATION_INTERFACE: {
+        "action_history": 3,
+        "pad_force_per_unit": 10.0,
+        "joint_vel_scale": 0.1,
+        "palm_offset_scale": 10.0,
+        "object_offset_scale": 10.0,
+        "object_ang_vel_scale": 0.1,
+        "link_distance_scale": 10.0,
+        "sigma_scale": 100.0,
+        "log_youngs_per_unit": 6.0,
+        "clock_period": 4.5,
+    },
+}
 
 
 def policy_interface(cfg: GraspEnvConfig) -> dict[str, object]:
-    """The ``POLICY_INTERFACE`` values of ``cfg`` (what a checkpoint records and is checked against)."""
-    return {key: getattr(cfg, key) for key in POLICY_INTERFACE}
+    """The ``POLICY_INTERFACE`` values of ``cfg`` and its observation settings under
+    ``OBSERVATION_INTERFACE`` (what a checkpoint records and is checked against)."""
+    return {key: getattr(cfg, key) for key in POLICY_INTERFACE} | {OBSERVATION_INTERFACE: asdict(cfg.obs)}

@@ -45,7 +45,7 @@ class ScheduleTables:
     in_push_score: torch.Tensor  # bool: a step whose result s_disturb scores (after the push began)
     scored_push: torch.Tensor  # int32: the push (0-5) whose result a step's state shows (step t - 1's)
     in_hold_score: torch.Tensor  # bool: a step whose result s_lift's hold check scores
-    clock: torch.Tensor  # (steps, 3): t / T, sin(2 pi t / T), cos(2 pi t / T)
+    clock: torch.Tensor  # (steps, 3): t / T, sin(2 pi t / T), cos(2 pi t / T), T the clock's period
     lift_rise: torch.Tensor  # m the palm has risen d steps into its lift (d clamped to [0, lift])
     push_dirs: torch.Tensor  # (7, 3): the six push directions by slot, and a zero row for slot 6
 
@@ -53,9 +53,14 @@ class ScheduleTables:
 class EpisodeScript:
     """Phase timing in control steps, the palm command and the disturbance for every world."""
 
-    def __init__(self, phases: PhaseConfig, control_hz: float, eval_mode: bool) -> None:
+    def __init__(
+        self, phases: PhaseConfig, control_hz: float, eval_mode: bool, clock_period: float = 4.5
+    ) -> None:
         self.cfg = phases
         dt = 1.0 / control_hz
+        # The clock's period in steps: fixed in seconds (ObservationConfig.clock_period), not the
+        # episode's length, so that a training and an evaluation episode show the same clock.
+        self.clock_steps = max(1.0, clock_period / dt)
         self.phase_steps = {
             "approach": max(1, round(phases.approach / dt)),
             "grasp": max(1, round(phases.grasp / dt)),
@@ -87,7 +92,7 @@ class EpisodeScript:
             k_in = (t - d0 - 1).clamp(min=0) % self.steps_per_push
             in_push_score = (t > d0) & (t <= d_end)
             hold0 = self.phase_start["hold"]
-            T = float(self.max_episode_length)
+            T = float(self.clock_steps)
             dl = torch.arange(self.phase_steps["lift"] + 1, device=device)
             tl = dl.float() / self.phase_steps["lift"]
             s_lift = 0.5 - 0.5 * torch.cos(math.pi * tl.clamp(0.0, 1.0))

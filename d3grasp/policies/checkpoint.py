@@ -79,9 +79,37 @@ def interface_overrides(data: dict[str, Any]) -> dict[str, Any]:
     interface = (data.get("infos") or {}).get("policy_interface")
     if not interface:
         return {}
-    from d3grasp.envs.config import POLICY_INTERFACE_BEFORE
+    return as_trained(interface, known_only=True)
 
-    return {**POLICY_INTERFACE_BEFORE, **interface}
+
+def as_trained(interface: dict[str, Any], known_only: bool = False) -> dict[str, Any]:
+    """A checkpoint's recorded ``policy_interface`` completed with ``POLICY_INTERFACE_BEFORE``: a
+    setting it does not record did not exist yet, so it was trained with the behaviour from before
+    it (observation settings field by field). ``known_only``: of those assumed values, only the
+    observation fields this version's ``ObservationConfig`` has (they become ``make_env`` overrides)."""
+    from dataclasses import fields
+
+    from d3grasp.envs.config import OBSERVATION_INTERFACE, POLICY_INTERFACE_BEFORE, ObservationConfig
+
+    before_obs = POLICY_INTERFACE_BEFORE[OBSERVATION_INTERFACE]
+    assert isinstance(before_obs, dict)
+    if known_only:
+        known = {f.name for f in fields(ObservationConfig)}
+        before_obs = {k: v for k, v in before_obs.items() if k in known}
+    out = {**POLICY_INTERFACE_BEFORE, **interface}
+    out[OBSERVATION_INTERFACE] = {**before_obs, **(interface.get(OBSERVATION_INTERFACE) or {})}
+    return out
+
+
+def _flat(interface: dict[str, Any]) -> dict[str, Any]:
+    """``{"obs": {"joint_vel_scale": 0.1}}`` -> ``{"obs.joint_vel_scale": 0.1}`` (``--set`` names)."""
+    out: dict[str, Any] = {}
+    for key, value in interface.items():
+        if isinstance(value, dict):
+            out |= {f"{key}.{k}": v for k, v in value.items()}
+        else:
+            out[key] = value
+    return out
 
 
 def observation_sizes(obs: Any) -> dict[str, int]:
@@ -133,15 +161,22 @@ def _check_policy_interface(theirs: dict[str, Any] | None, mine: dict[str, Any] 
     """Refuse a checkpoint trained with other action-to-target settings (same sizes, other meaning)."""
     if not theirs or mine is None:
         return  # checkpoints from before the record, or an env without a GraspEnvConfig
-    from d3grasp.envs.config import POLICY_INTERFACE_BEFORE
+    from d3grasp.envs.config import OBSERVATION_INTERFACE
 
     # A setting the checkpoint does not record did not exist yet: it was trained with the old behaviour.
-    theirs = {**POLICY_INTERFACE_BEFORE, **theirs}
+    # One that this environment does not have is not compared (a newer checkpoint's setting).
+    theirs, mine = _flat(as_trained(theirs)), _flat(mine)
     diff = {k: (v, mine[k]) for k, v in theirs.items() if k in mine and mine[k] != v}
     if diff:
         given = ", ".join(f"{k}={a!r} (environment: {b!r})" for k, (a, b) in diff.items())
         fix = " ".join(f"--set {k}={a}" for k, (a, _) in diff.items())
+        seen = any(k.startswith(f"{OBSERVATION_INTERFACE}.") for k in diff)
+        acted = any(not k.startswith(f"{OBSERVATION_INTERFACE}.") for k in diff)
+        what = " and ".join(
+            (["its actions mean something else"] if acted else [])
+            + (["it would see other observations"] if seen else [])
+        )
         raise CheckpointError(
-            f"checkpoint {path} was trained with {given}: its actions mean something else in this "
-            f"environment; build it as trained ({fix})"
+            f"checkpoint {path} was trained with {given}: {what} in this environment; build it as "
+            f"trained ({fix})"
         )

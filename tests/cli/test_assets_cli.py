@@ -91,6 +91,30 @@ def test_validate_missing_manifest_and_garbage_manifest(
     assert code == 2 and len(_error_lines(err)) == 1 and "not a JSON manifest" in err
 
 
+def test_plan_grasps_needs_a_library_folder(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With no folder, plan-grasps would write grasps.json into the installed package (a system-wide
+    install is not writable): refused in one line that names the argument to give, nothing written."""
+    shipped = default_manifest().parent / "grasps.json"
+    before = shipped.stat().st_mtime_ns if shipped.exists() else None
+    code, out, err = _run(capsys, "plan-grasps")
+    (line,) = _error_lines(err)
+    assert code == 2 and out == ""
+    assert "d3grasp-assets plan-grasps DIR" in line and "grasps.json" in line
+    assert (shipped.stat().st_mtime_ns if shipped.exists() else None) == before
+    # A named folder that cannot be written is refused before any trial runs (root writes anywhere,
+    # so the permission is what the check reads).
+    (tmp_path / "manifest.json").write_text("{}")
+    monkeypatch.setattr("d3grasp.cli.assets.os.access", lambda path, mode: False)
+    code, out, err = _run(capsys, "plan-grasps", str(tmp_path))
+    (line,) = _error_lines(err)
+    assert code == 2 and line == (
+        f"error: {tmp_path}: not writable, and grasps.json is written there; copy the library to a "
+        "folder you can write and plan that copy (d3grasp-assets plan-grasps COPY)"
+    )
+
+
 @pytest.mark.parametrize(
     ("name", "content", "reason"),
     [

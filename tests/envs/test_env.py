@@ -50,7 +50,9 @@ def test_observation_groups_shapes_and_dtypes(mixed_env):
     a = env.num_actions
     assert obs["policy"].shape == (2, 33 + 11 + 16 + 16 + a * k + 3 + 3 + len(PHASES) + 7 + 16 + 16)
     # object pos 3, quat 4, lin 3, ang 3, 17 link distances, eps, sigma, mass, friction, log E, 33 forces
-    assert obs["privileged"].shape == (2, 3 + 4 + 3 + 3 + 17 + 5 + 33)
+    # object pose and velocities, 17 link distances, strain, sigma, mass, friction, log E, true pad
+    # forces 33, the episode's draw 4, the push ahead 3
+    assert obs["privileged"].shape == (2, 3 + 4 + 3 + 3 + 17 + 5 + 33 + 4 + 3)
     assert obs["policy"].dtype == torch.float32 and obs["privileged"].dtype == torch.float32
     assert env.num_actions == 4 and env.episode_length_buf.shape == (2,)
 

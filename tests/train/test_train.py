@@ -20,6 +20,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -267,7 +268,7 @@ def test_train_cfg_per_task() -> None:
     assert make_train_cfg(DEFAULT_TASK)["obs_groups"]["critic"] == ["policy", "privileged"]
     cfg = make_train_cfg(DEFAULT_TASK, num_steps_per_env=8, algorithm={"learning_rate": 1e-3})
     assert cfg["num_steps_per_env"] == 8 and cfg["algorithm"]["learning_rate"] == 1e-3
-    assert cfg["algorithm"]["gamma"] == 0.99  # merged, not replaced
+    assert cfg["algorithm"]["gamma"] == 1.0  # merged, not replaced
     with pytest.raises(ValueError, match="unknown runner config key"):
         make_train_cfg(DEFAULT_TASK, num_step_per_env=8)
     with pytest.raises(ValueError, match="learning_rat"):
@@ -388,7 +389,10 @@ def test_checkpoint_discovery(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------- end to end
 def test_train_resume_play_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """2 iterations -> checkpoint -> resume 2 more -> play loads it -> exports match the eager policy."""
-    assert train_mod.main(_train_argv(tmp_path)) == 0
+    # The residual acts from the first step, so these 4-step rollouts (the approach) update the actor:
+    # steps whose actions the environment ignores carry no policy gradient (d3grasp.train.ppo).
+    acting = ("--set", "residual_start=approach")
+    assert train_mod.main(_train_argv(tmp_path, extra=acting)) == 0
     (run1,) = _run_dirs(tmp_path)
     ckpt = run1 / "model_2.pt"
     data = read_checkpoint(ckpt)
@@ -424,7 +428,7 @@ def test_train_resume_play_export(tmp_path: Path, capsys: pytest.CaptureFixture[
 
     # Resume: a new run folder continues the count and the optimizer state; --set changes the
     # training env's config and params/env.json records it.
-    more = ("--resume", "--run_name", "more", "--set", "phases.disturb_per_direction=0.5")
+    more = ("--resume", "--run_name", "more", "--set", "phases.disturb_per_direction=0.5", *acting)
     assert train_mod.main(_train_argv(tmp_path, extra=more)) == 0
     run2 = _run_dirs(tmp_path)[-1]
     assert run2.name.endswith("_more")
@@ -483,13 +487,15 @@ def test_exports_go_next_to_the_checkpoint_and_the_shipped_policy_stays_as_insta
 
 
 def test_critic_warmup_leaves_the_actor_unchanged() -> None:
-    """In the warm-up iterations only the critic learns; after them the actor does too."""
+    """In the warm-up iterations only the critic learns, its observation normaliser included, and
+    the actor's normaliser stays as it was (the policy the critic fits does not move); after them
+    the actor learns too."""
     env = StandInEnv(DEFAULT_TASK, num_envs=4, seed=2)
     cfg = make_train_cfg(DEFAULT_TASK, num_steps_per_env=4, critic_warmup_iterations=2)
     runner = D3GraspRunner(env, cfg, log_dir=None, task_name=DEFAULT_TASK)
 
     def snapshot(module: torch.nn.Module) -> dict[str, torch.Tensor]:
-        return {k: v.clone() for k, v in module.state_dict().items() if "normalizer" not in k}
+        return {k: v.clone() for k, v in module.state_dict().items()}
 
     actor0, critic0 = snapshot(runner.alg.actor), snapshot(runner.alg.critic)
     runner.learn(2)
@@ -633,6 +639,7 @@ def test_checkpoint_records_and_checks_how_actions_become_targets(tmp_path: Path
         "residual_rate": 0.05,
         "residual_start": "approach",
         "action_smoothing": 0.7,
+        "obs": asdict(env.cfg.obs),  # the observation scales (tests/test_policy_interface.py)
     }
     runner.load(str(ckpt), load_cfg={"actor": True})  # same settings: loads
     # Evaluation builds its environments as the checkpoint records, --set going over it.

@@ -115,11 +115,13 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
         scale = env.rng.uniform(*rnd.object_mass_scale) if rand else 1.0
         arrays.body_mass[b] = env.nominal_body_mass[b] * scale
         arrays.body_inv_mass[b] = env.nominal_body_inv_mass[b] / scale
+        env.episode_dynamics[w, 0] = scale
     else:
         arrays.particle_q[p0 : p0 + n] = placed
         t0, nt = lay.tet_start[w], lay.tet_count[w]
         scale = env.rng.uniform(*rnd.youngs_modulus_scale) if rand else 1.0
         arrays.tet_materials[t0 : t0 + nt, :2] = env.nominal_tet_materials[t0 : t0 + nt, :2] * scale
+        env.episode_dynamics[w, 0] = scale
 
 
 def _plan_grasp(
@@ -190,6 +192,9 @@ def _randomise_dynamics(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
     env.latency[w] = (
         int(env.rng.integers(rnd.action_latency_steps[0], rnd.action_latency_steps[1] + 1)) if rand else 0
     )
+    # What the critic reads of this episode's draw (privileged group; the mass or stiffness scale is
+    # written where it is drawn).
+    env.episode_dynamics[w, 1:] = torch.as_tensor([mu, gain, float(env.latency[w])])
     if cfg.eval_mode:
         env.disturb_order[w] = torch.arange(6)
     else:

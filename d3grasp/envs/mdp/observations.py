@@ -165,11 +165,38 @@ def privileged(env: GraspEnv) -> torch.Tensor:
     )
 
 
+def episode_draw(env: GraspEnv) -> torch.Tensor:
+    """(W, 4) this episode's domain randomisation: mass (rigid) or Young's modulus (soft) scale,
+    friction scale, drive gain scale and action latency (steps). The manifest's nominal mass and
+    friction above do not show what decides a marginal hold in this episode; these do."""
+    return env.episode_dynamics
+
+
+def push_ahead(env: GraspEnv) -> torch.Tensor:
+    """(W, 3) the direction of the push under way, or of the episode's first push before the
+    disturb phase; zero once the pushes are over. With the clock it gives the critic the schedule."""
+    script = env.script
+    tab = script.tables(env.torch_device)
+    slot = tab.push_slot[script.row(env.episode_length_buf)]
+    before = env.episode_length_buf < env.phase_start["disturb"]
+    slot = torch.where(before, torch.zeros_like(slot), slot)
+    order = torch.cat([env.disturb_order, torch.full_like(env.disturb_order[:, :1], 6)], dim=1)
+    return tab.push_dirs[order.gather(1, slot[:, None])[:, 0]]
+
+
+def privileged_episode(env: GraspEnv) -> torch.Tensor:
+    """The privileged group's terms that the observation kernel does not compute (a few values per
+    world, appended in torch): the episode's draw and the push schedule."""
+    return torch.cat([episode_draw(env), push_ahead(env)], dim=-1)
+
+
 def reference_observations(env: GraspEnv) -> TensorDict:
-    """Both groups from the torch terms above, non-finite values zeroed (what the kernel computes)."""
+    """Both groups from the torch terms above, non-finite values zeroed (what the kernel computes,
+    with :func:`privileged_episode` appended)."""
     policy = torch.cat([term(env) for _, term in policy_terms(env)], dim=-1)
+    priv = torch.cat([privileged(env), privileged_episode(env)], dim=-1)
     return TensorDict(
-        {"policy": torch.nan_to_num(policy), "privileged": torch.nan_to_num(privileged(env))},
+        {"policy": torch.nan_to_num(policy), "privileged": torch.nan_to_num(priv)},
         batch_size=[env.num_envs],
         device=env.torch_device,
     )
@@ -219,7 +246,7 @@ def allocate(env: GraspEnv) -> None:
     )
     env.obs_params = prm
     env.obs_policy = floats(W, sizes["policy"].shape[1])
-    env.obs_privileged = floats(W, sizes["privileged"].shape[1])
+    env.obs_privileged = floats(W, sizes["privileged"].shape[1] - privileged_episode(env).shape[1])
     env.t_obs = {"policy": wp_view(env.obs_policy), "privileged": wp_view(env.obs_privileged)}
     inp = env.obs_inputs
     env.t_obs_in = {
@@ -247,7 +274,10 @@ def compute_observations(env: GraspEnv) -> TensorDict:
         i["residual"].copy_(env.residual)
     env.obs_launch()
     return TensorDict(
-        {"policy": env.t_obs["policy"].clone(), "privileged": env.t_obs["privileged"].clone()},
+        {
+            "policy": env.t_obs["policy"].clone(),
+            "privileged": torch.cat([env.t_obs["privileged"], privileged_episode(env)], dim=-1),
+        },
         batch_size=[env.num_envs],
         device=env.torch_device,
     )
