@@ -124,7 +124,7 @@ def _rss_mb() -> float:
 
 # The widest finger authority the residual action modes offer (0.4 rad, integrated, from t = 0), not the
 # task's default (0.1 rad, low-pass, from the grasp on): random actions should stress the contacts as
-# far as any policy could, as they did when the soak figures in the README were measured.
+# far as any policy could, as they did when the soak figures in docs/performance.md were measured.
 SOAK_ACTION_AUTHORITY: dict[str, Any] = {
     "residual_scale": 0.4,
     "residual_rate": 0.08,

@@ -77,7 +77,12 @@ def test_shipped_checkpoint_predates_the_record_and_still_fits() -> None:
     path = shipped_checkpoint(DEFAULT_TASK)
     infos = read_checkpoint(path)["infos"]
     cfg = get_task(DEFAULT_TASK).make_cfg()
-    _check(infos, cfg, str(path))  # today's defaults
+    # It acted every step, before decisions were held (decision_steps, default 10): today's defaults
+    # refuse it with the flag that fits, and the build from its record fits.
+    with pytest.raises(CheckpointError, match=r"decision_steps=1 \(environment: 10\)"):
+        _check(infos, cfg, str(path))
+    cfg.decision_steps = 1
+    _check(infos, cfg, str(path))
     built = apply_overrides(get_task(DEFAULT_TASK).make_cfg(), interface_overrides({"infos": infos}))
     _check(infos, built, str(path))  # as evaluation and play build it
     cfg.obs.palm_offset_scale = 5.0

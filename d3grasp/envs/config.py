@@ -231,6 +231,17 @@ class GraspEnvConfig:
     # training worlds then ended without a grasp (measured; the rule alone: 2 of 16).
     residual_start: str = "grasp"  # a phase of d3grasp.vocabulary.PHASES; "approach": from t = 0
     action_smoothing: float = 0.5  # target = a * new + (1 - a) * previous target
+    # Control steps a decision of the policy is held for (1: a new action every step). The outcome is
+    # scored seconds after the fingers close, and what decides it is a sustained offset (a firmer
+    # squeeze through the lift), which independent per-step noise through the low-pass barely
+    # explores: one step's noise moves the residual by smoothing x noise and is forgotten in ~5 steps.
+    # Held for k steps, the exploration noise is a sustained offset, and the policy loss has k times
+    # fewer terms, each with k times the effect (the advantage's signal-to-noise up by ~sqrt(k)). The
+    # policy still reads every step's touch (its memory runs at 60 Hz); only the actions of decision
+    # steps move the fingers, and PPO counts only those (GraspEnv.action_takes_effect). A decision
+    # window starts where the actions start to act (residual_start). Residual and synergy modes only:
+    # in the absolute mode the actions are the whole controller and act every step.
+    decision_steps: int = 10
     privileged_obs: bool = True  # asymmetric critic input group
     tactile_obs: bool = True  # False for the proprioception-only ablation
     sim: SimConfig = field(default_factory=SimConfig)
@@ -291,6 +302,7 @@ POLICY_INTERFACE: tuple[str, ...] = (
     "residual_rate",
     "residual_start",
     "action_smoothing",
+    "decision_steps",
 )
 """The settings that turn a policy's actions into joint targets. A checkpoint only means what it
 learned under the values it was trained with, and most of them leave every size unchanged (a
@@ -309,6 +321,7 @@ OBSERVATION_INTERFACE = "obs"
 # later change of a default refuses those checkpoints instead of feeding them other scales.
 POLICY_INTERFACE_BEFORE: dict[str, object] = {
     "residual_start": "approach",
+    "decision_steps": 1,
     OBSERVATION_INTERFACE: {
         "action_history": 3,
         "pad_force_per_unit": 10.0,

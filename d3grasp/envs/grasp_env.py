@@ -212,6 +212,8 @@ class GraspEnv:
         self.episode_length_buf = zeros(W, dtype=torch.long)
         self.actions = zeros(W, A)
         self.action_hist = zeros(W, self.cfg.obs.action_history, A)
+        # Steps since the actions started to act this episode (decision_steps: a decision every k-th).
+        self.decision_age = zeros(W, dtype=torch.long)
         self.synergy = mdp_actions.synergy_matrix(tdev)
         # What an action history starts from: the open hand (absolute) or the zero residual (the rule).
         self.reset_action = self.open_action if self.cfg.action_mode == "absolute" else zeros(A)
@@ -291,11 +293,12 @@ class GraspEnv:
 
     def action_takes_effect(self) -> torch.Tensor:
         """(W,) bool: whether the action of the coming step moves anything. In the residual modes the
-        actions are ignored before ``residual_start`` (the residual is held at 0 there), so PPO leaves
-        those steps out of its policy loss (d3grasp.train.ppo)."""
-        if self.residual_base is None:
+        actions are ignored before ``residual_start`` (the residual is held at 0 there), and with
+        ``decision_steps`` k > 1 only every k-th action from there on is taken (and held); PPO leaves
+        the other steps out of its policy loss (d3grasp.train.ppo)."""
+        if self.residual_base is None:  # absolute mode: every action acts (mdp.actions.hold_decisions)
             return torch.ones(self.num_envs, dtype=torch.bool, device=self.torch_device)
-        return self.phase_of(self.episode_length_buf) >= PHASES.index(self.cfg.residual_start)
+        return mdp_actions.acting(self) & (self.decision_age % self.cfg.decision_steps == 0)
 
     def open_pose_of(self, worlds: torch.Tensor) -> torch.Tensor:
         """(len(worlds), 16) the open hand of each world: the rule's rest pose with the abduction
@@ -489,6 +492,8 @@ def _check_config(cfg: GraspEnvConfig, num_envs: int) -> None:
         raise ValueError(f"residual_smoothing must be in (0, 1], got {cfg.residual_smoothing}")
     if not 0.0 <= cfg.residual_rate <= 1.0:
         raise ValueError(f"residual_rate must be in [0, 1], got {cfg.residual_rate}")
+    if cfg.decision_steps < 1:
+        raise ValueError(f"decision_steps must be >= 1, got {cfg.decision_steps}")
     if cfg.residual_penalty < 0.0:
         raise ValueError(f"residual_penalty must be >= 0, got {cfg.residual_penalty}")
     if cfg.residual_start not in PHASES:

@@ -41,7 +41,7 @@ from d3grasp.planner.candidates import CandidateConfig, candidates, collision_pi
 from d3grasp.planner.score import ScoringConfig, Trial, run_trials, trial_environment, trial_score
 
 # Object displaced by (dx, dy) m and turned by dyaw rad from where the planner thinks it is: the
-# camera's localisation error class (5.6 mm mean, 11 mm p95 with noise; README, Perception).
+# camera's localisation error class (5.6 mm mean, 11 mm p95 with noise; docs/evaluation.md, Perception).
 PERTURBATIONS: tuple[tuple[float, float, float], ...] = ((0.004, -0.003, 0.08), (-0.004, 0.003, -0.08))
 
 

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import trimesh
 
@@ -241,3 +242,74 @@ def test_console_script_installed() -> None:
     assert res.returncode == 0
     for cmd in ("build", "import", "validate", "list", "plan-grasps"):
         assert cmd in res.stdout
+
+
+NEEDS_TETWILD = pytest.mark.skipif(
+    __import__("importlib").util.find_spec("pytetwild") is None, reason="tet meshing needs pytetwild"
+)
+FLAT_BAR = (0.15, 0.045, 0.02)  # the 15 x 4.5 x 2 cm bar that took fTetWild (and the import) down
+
+
+@NEEDS_TETWILD
+def test_a_flat_bar_meshes_on_every_run() -> None:
+    """fTetWild crashed on this bar in 5 of 6 runs (issue 45): it meshes on each of three, to its volume."""
+    from d3grasp.authoring.tetmesh import tetrahedralize
+
+    bar = trimesh.creation.box(extents=FLAT_BAR)
+    for _ in range(3):
+        points, tets = tetrahedralize(bar, 400)
+        v = points[tets]
+        volume = np.abs(
+            np.einsum("ij,ij->i", v[:, 1] - v[:, 0], np.cross(v[:, 2] - v[:, 0], v[:, 3] - v[:, 0]))
+        )
+        assert float(volume.sum()) / 6.0 == pytest.approx(float(np.prod(FLAT_BAR)), rel=0.05)
+
+
+@NEEDS_TETWILD
+def test_a_soft_batch_with_the_flat_bar_imports_every_mesh(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The bar among other meshes, in worker processes: every mesh is written as a soft body."""
+    trimesh.creation.box(extents=FLAT_BAR).export(tmp_path / "bar.stl")
+    trimesh.creation.box(extents=[0.06, 0.05, 0.04]).export(tmp_path / "sponge.stl")
+    trimesh.creation.icosphere(subdivisions=2, radius=0.03).export(tmp_path / "ball.stl")
+    meshes = [str(tmp_path / n) for n in ("bar.stl", "sponge.stl", "ball.stl")]
+    out = tmp_path / "lib"
+    code, stdout, err = _run(
+        capsys, "import", "--no-plan-grasps", "--deformable", *meshes, "--out", str(out), "--workers", "2"
+    )
+    assert code == 0, err
+    entries = {e.id: e for e in read_manifest(out / "manifest.json")}
+    assert set(entries) == {"bar", "sponge", "ball"} and all(e.kind == "deformable" for e in entries.values())
+    assert entries["bar"].volume == pytest.approx(float(np.prod(FLAT_BAR)), rel=0.05)
+
+
+@NEEDS_TETWILD
+def test_a_mesher_that_always_crashes_is_a_one_line_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """fTetWild dying on one mesh at every setting: the import says which file and why in one line
+    (exit 2, nothing written), or with --skip-invalid skips it and writes the others (exit 3)."""
+    from d3grasp.authoring import tetmesh
+
+    real = tetmesh._run_ftetwild
+
+    def crash_on_the_bar(vertices: np.ndarray, *args: float) -> tuple[np.ndarray, np.ndarray]:
+        if np.ptp(vertices, axis=0).max() > 0.14:  # the bar, 15 cm long; the ball is 6 cm
+            raise tetmesh.MesherCrash("fTetWild crashed (signal SIGSEGV)")
+        return real(vertices, *args)
+
+    monkeypatch.setattr(tetmesh, "_run_ftetwild", crash_on_the_bar)
+    trimesh.creation.box(extents=FLAT_BAR).export(tmp_path / "bar.stl")
+    trimesh.creation.icosphere(subdivisions=2, radius=0.03).export(tmp_path / "ball.stl")
+    meshes = [str(tmp_path / "bar.stl"), str(tmp_path / "ball.stl")]
+    out = tmp_path / "lib"
+    argv = ["import", "--no-plan-grasps", "--deformable", *meshes, "--out", str(out), "--workers", "1"]
+    code, _, err = _run(capsys, *argv)
+    lines = _error_lines(err)
+    assert code == 2 and len(lines) == 1 and not out.exists()
+    assert lines[0].startswith(f"error: {tmp_path / 'bar.stl'}: ") and "crashed" in lines[0]
+    code, stdout, err = _run(capsys, *argv, "--skip-invalid")
+    skipped = [ln for ln in err.replace("\r", "\n").splitlines() if ln.startswith("skipped ")]
+    assert code == 3 and len(skipped) == 1 and skipped[0].startswith(f"skipped {tmp_path / 'bar.stl'}: ")
+    assert [e.id for e in read_manifest(out / "manifest.json")] == ["ball"]

@@ -180,7 +180,13 @@ def test_residual_is_low_pass_filtered():
     """A constant residual action a reaches the joints as the geometric series a (1 - (1 - b)^k), on top
     of the rule's target and through the outer target smoothing (recomputed here step by step)."""
     b = 0.25
-    env = _box_env(action_mode="residual", residual_rate=0.0, residual_smoothing=b, residual_start="approach")
+    env = _box_env(
+        action_mode="residual",
+        residual_rate=0.0,
+        residual_smoothing=b,
+        residual_start="approach",
+        decision_steps=1,
+    )
     action = torch.linspace(-1.0, 1.0, 16)[None]
     rest = env.residual_base.target.clone()  # the rule holds its rest pose through the approach
     a_s, target = env.cfg.action_smoothing, env.finger_target.clone()
@@ -200,7 +206,13 @@ def test_synergy_action_squeezes_each_fingers_flexion_joints():
     """Synergy mode: 4 actions, action f offsets finger f's three flexion joints (4f+1..4f+3) equally and
     no abduction joint; the offset is filtered like the residual mode's."""
     b = 0.25
-    env = _box_env(action_mode="synergy", residual_rate=0.0, residual_smoothing=b, residual_start="approach")
+    env = _box_env(
+        action_mode="synergy",
+        residual_rate=0.0,
+        residual_smoothing=b,
+        residual_start="approach",
+        decision_steps=1,
+    )
     assert env.num_actions == 4
     action = torch.tensor([[0.5, -1.0, 0.2, 1.0]])
     expected = torch.zeros(1, 16)
@@ -217,7 +229,7 @@ def test_synergy_action_squeezes_each_fingers_flexion_joints():
 def test_residual_integrator_holds_and_saturates():
     """residual_rate > 0: the residual is the clipped running sum of rate * action (zero holds it)."""
     rate = 0.3
-    env = _box_env(action_mode="synergy", residual_rate=rate, residual_start="approach")
+    env = _box_env(action_mode="synergy", residual_rate=rate, residual_start="approach", decision_steps=1)
     expected = np.zeros(4)
     for action in ([1.0, -0.5, 0.2, 0.0], [0.0] * 4) + ([1.0, -1.0, 0.5, -0.1],) * 3:
         env.step(torch.tensor([action]))
@@ -233,7 +245,7 @@ def test_residual_waits_for_its_start_phase():
     """residual_start="grasp": through the scripted approach the residual stays 0 whatever the actions;
     from the first grasp step on it integrates them from 0."""
     rate = 0.1
-    env = _box_env(action_mode="synergy", residual_rate=rate, residual_start="grasp")
+    env = _box_env(action_mode="synergy", residual_rate=rate, residual_start="grasp", decision_steps=1)
     grasp = PHASES.index("grasp")
     action = torch.tensor([[1.0, -0.5, 0.2, 0.0]])
     steps_in_grasp = 0
@@ -249,6 +261,35 @@ def test_residual_waits_for_its_start_phase():
         torch.testing.assert_close(flexion, want[:, None].expand(4, 3), atol=1e-6, rtol=0)
     with pytest.raises(ValueError, match="residual_start"):
         _env((RIGID_MEDIUM_BOX,), residual_start="squeeze")
+
+
+def test_decisions_are_held_for_decision_steps():
+    """decision_steps k: from the first step the actions act (residual_start), the action of every k-th
+    step is taken and held for k steps; the others change nothing, and action_takes_effect() marks
+    exactly the steps whose action is taken."""
+    k = 3
+    env = _box_env(action_mode="synergy", residual_start="grasp", decision_steps=k)
+    grasp = PHASES.index("grasp")
+    gen = torch.Generator().manual_seed(0)
+    taken, held = [], []
+    steps_in_grasp = 0
+    while steps_in_grasp < 3 * k + 1:
+        in_grasp = int(env.phase_of(env.episode_length_buf)[0]) >= grasp
+        action = torch.rand(1, 4, generator=gen) * 2.0 - 1.0
+        takes = bool(env.action_takes_effect()[0])
+        env.step(action)
+        if not in_grasp:
+            assert not takes and torch.all(env.actions == 0.0) and torch.all(env.residual == 0.0)
+            continue
+        assert takes == (steps_in_grasp % k == 0), steps_in_grasp
+        if takes:
+            taken.append(action[0])
+        held.append(env.actions[0].clone())
+        steps_in_grasp += 1
+    for n, a in enumerate(held):
+        torch.testing.assert_close(a, taken[n // k], atol=0, rtol=0)
+    with pytest.raises(ValueError, match="decision_steps"):
+        _env((RIGID_MEDIUM_BOX,), decision_steps=0)
 
 
 def test_disturbance_force_pushes_a_free_object():

@@ -28,9 +28,32 @@ def synergy_matrix(device: torch.device | str = "cpu") -> torch.Tensor:
     return s
 
 
+def acting(env: GraspEnv) -> torch.Tensor:
+    """(W,) bool: the worlds whose actions act at the coming step. In the residual modes the rule alone
+    drives the fingers before ``residual_start`` (e.g. through the scripted approach)."""
+    if env.residual_base is None:
+        return torch.ones(env.num_envs, dtype=torch.bool, device=env.torch_device)
+    return env.phase_of(env.episode_length_buf) >= PHASES.index(env.cfg.residual_start)
+
+
+def hold_decisions(env: GraspEnv, actions: torch.Tensor) -> torch.Tensor:
+    """The actions the worlds apply at the coming step under ``decision_steps`` k: a world takes the
+    policy's action at the first step its actions act and every k-th step after, and holds it in
+    between (``env.actions`` is the action held). Residual modes only: in the absolute mode the
+    actions are the whole controller (the rule-based baseline among them) and act every step."""
+    k = env.cfg.decision_steps
+    if k == 1 or env.residual_base is None:
+        return actions
+    now = acting(env)
+    decide = now & (env.decision_age % k == 0)
+    env.decision_age = torch.where(now, env.decision_age + 1, torch.zeros_like(env.decision_age))
+    return torch.where(decide[:, None], actions, env.actions)
+
+
 def apply_actions(env: GraspEnv, actions: torch.Tensor) -> None:
     """Turn one step's actions into the finger joint targets of every world (writes the control)."""
     cfg = env.cfg
+    actions = hold_decisions(env, actions)
     # Action latency: a world with latency k applies the action of k steps ago.
     hist = (
         torch.cat([actions[:, None], env.action_hist[:, :-1]], dim=1)
@@ -49,10 +72,8 @@ def apply_actions(env: GraspEnv, actions: torch.Tensor) -> None:
             b = cfg.residual_smoothing
             env.residual = b * applied + (1.0 - b) * env.residual
         # Before cfg.residual_start (e.g. the scripted approach) the rule alone drives the fingers.
-        start = PHASES.index(cfg.residual_start)
-        if start > 0:  # from the first phase on there is nothing to wait for
-            waiting = env.phase_of(env.episode_length_buf) < start
-            env.residual = env.residual * (~waiting)[:, None]
+        if PHASES.index(cfg.residual_start) > 0:  # from the first phase on there is nothing to wait for
+            env.residual = env.residual * acting(env)[:, None]
         desired = env.residual_base.target + cfg.residual_scale * env.residual
         desired = torch.minimum(torch.maximum(desired, env.lower), env.upper)
     else:

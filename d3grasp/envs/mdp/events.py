@@ -238,6 +238,7 @@ def _reset_bookkeeping(env: GraspEnv, env_ids: torch.Tensor) -> None:
     env.episode_length_buf[env_ids] = 0
     env.actions[env_ids] = env.reset_action
     env.action_hist[env_ids] = env.reset_action
+    env.decision_age[env_ids] = 0
     env.finger_target[env_ids] = env.open_pose_of(env_ids)
     env.residual[env_ids] = 0.0
     if env.residual_base is not None:
