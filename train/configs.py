@@ -6,15 +6,15 @@ runner/PPO config that trains it. ``make_train_cfg(task)`` returns the plain dic
 ``obs_normalization`` and a ``distribution_cfg`` on the actor; 2.x-4.x keys such as ``policy`` or
 ``empirical_normalization`` raise errors there).
 
-Why these hyper-parameters (docs/design.md, Training): on a laptop CPU a rollout batch is small
-(e.g. 32 worlds x 24 steps = 768 samples). rsl-rl's adaptive learning-rate schedule then sees
-noisy KL estimates and drives the rate to its 1e-5 floor within a few dozen iterations, after
-which nothing learns.
-A fixed rate with 5 epochs x 4 mini-batches and clip 0.2 keeps the per-update policy change
-bounded by the clip instead; 1e-4 (with 20 critic-only iterations first, exploration noise 0.5 and
-no entropy bonus) is the setting the shipped policy was trained with, chosen by evaluations on the
-train split (docs/design.md, Fine-tuning the residual). The recurrent actor (LSTM 128 -> MLP
-[128, 64]) sees only what a real hand senses (touch, proprioception, phase clock); the critic MLP
+Why these hyper-parameters (docs/design.md, Training; Training from a delayed outcome): on a laptop
+CPU a batch is small (~50 worlds x one episode), and rsl-rl's adaptive learning-rate schedule then
+sees noisy KL estimates and drives the rate to its 1e-5 floor within a few dozen iterations, after
+which nothing learns. A fixed rate of 1e-4 with 5 epochs x 4 mini-batches and clip 0.2 keeps the
+per-update policy change bounded by the clip instead (with exploration noise 0.5 and no entropy
+bonus, as the shipped policy was trained). The grasp's outcome is scored seconds after the fingers
+close, so an update holds whole episodes, the discount is 1 and the end a true terminal
+(d3grasp.train.ppo for the masks, the scaling and the bound loss). The recurrent actor (LSTM 128 ->
+MLP [128, 64]) sees only what a real hand senses (touch, proprioception, phase clock); the critic MLP
 reads the privileged group too (the asymmetric actor-critic of the paper) except in the Base /
 BaseTactile ablations.
 """
