@@ -51,7 +51,7 @@ def _box(*extents: float) -> Callable[[], trimesh.Trimesh]:
 
 SHAPES: dict[str, Callable[[], trimesh.Trimesh]] = {
     "bar 15 x 4.5 x 2 cm (remote control)": _box(0.15, 0.045, 0.02),
-    "ruler 20 x 3 x 0.5 cm": _box(0.20, 0.03, 0.005),
+    "ruler 19 x 3 x 0.5 cm": _box(0.19, 0.03, 0.005),
     "plate 12 x 12 x 1 cm": _box(0.12, 0.12, 0.01),
     "phone-sized sponge 14 x 7 x 1.5 cm": _box(0.14, 0.07, 0.015),
     "thin plate 10 x 10 x 0.3 cm": _box(0.10, 0.10, 0.003),

@@ -63,7 +63,7 @@ class GraspEnv:
         self.task_name = task_name
         self.num_envs = int(cfg.num_envs)
         _check_config(cfg, self.num_envs)
-        self.num_actions = NUM_FINGERS if cfg.action_mode == "synergy" else NUM_FINGER_JOINTS
+        self.num_actions = mdp_actions.num_actions(cfg)
         self.device = cfg.device
         self.wp_device = wp.get_device("cpu" if cfg.device == "cpu" else cfg.device)
         self.torch_device = torch.device(cfg.device)
@@ -147,6 +147,8 @@ class GraspEnv:
         self.t_palm_pos_start = wp_view(ph.palm_pos_start)
         self.t_palm_pos_end = wp_view(ph.palm_pos_end)
         self.t_palm_quat = wp_view(ph.palm_quat)
+        self.t_palm_yaw_start = wp_view(ph.palm_yaw_start)
+        self.t_palm_yaw_end = wp_view(ph.palm_yaw_end)
         self.t_pad_force = wp_view(se.pad_force)
         self.t_pad_contact = wp_view(se.pad_contact)
         self.t_pad_force_true = wp_view(se.pad_force_true)
@@ -227,6 +229,8 @@ class GraspEnv:
         self.preshape = zeros(W, NUM_FINGERS)  # abduction of each finger's first joint (rad)
         self.grasp_palm_pos, self.grasp_palm_quat, self.approach_dir = zeros(W, 3), zeros(W, 4), zeros(W, 3)
         self.root_cmd_pos = zeros(W, 3)
+        # The wrist's offset of the scripted palm path (GraspEnvConfig.palm_*; zero without a wrist).
+        self.palm_offset, self.palm_yaw = zeros(W, 3), zeros(W)
         self.root_q_cmd = zeros(W, self.layout.root_q.shape[1])
         # p_anchor = R_a^T p  <=>  row vector p @ R_a
         self.anchor_rot = torch.as_tensor(quat_xyzw_to_matrix(HAND_ANCHOR_QUAT), dtype=f32, device=tdev)
@@ -349,6 +353,8 @@ class GraspEnv:
             self.t_palm_pos_start[:] = self.t_body_q[self.i_palm, :3]
             self.t_palm_pos_end[:] = pos
             self.t_palm_quat[:] = self.grasp_palm_quat
+            self.t_palm_yaw_start[:] = self.t_palm_yaw_end
+            self.t_palm_yaw_end[:] = self.palm_yaw
             return
         # The orientation is fixed per episode (root angles set at reset); the prismatic part of the
         # root chain is the palm position expressed in the anchor frame.
@@ -379,8 +385,9 @@ class GraspEnv:
             )
         mdp_actions.apply_actions(self, actions)
         t = self.episode_length_buf
-        self.root_cmd_pos = self.script.palm_command(
-            t + 1, self.grasp_palm_pos, self.approach_dir, self.lift_start
+        self.root_cmd_pos = (
+            self.script.palm_command(t + 1, self.grasp_palm_pos, self.approach_dir, self.lift_start)
+            + self.palm_offset
         )
         self._command_palm(self.root_cmd_pos)
         # The push tests an object the hand holds: once it has failed the lift or left the grip under
@@ -492,6 +499,15 @@ def _check_config(cfg: GraspEnvConfig, num_envs: int) -> None:
         raise ValueError(f"residual_smoothing must be in (0, 1], got {cfg.residual_smoothing}")
     if not 0.0 <= cfg.residual_rate <= 1.0:
         raise ValueError(f"residual_rate must be in [0, 1], got {cfg.residual_rate}")
+    if (
+        min(cfg.palm_offset_limit, cfg.palm_yaw_limit) < 0.0
+        or min(cfg.palm_offset_rate, cfg.palm_yaw_rate) <= 0.0
+    ):
+        raise ValueError("palm_offset_limit and palm_yaw_limit must be >= 0, the palm rates > 0")
+    if mdp_actions.has_wrist(cfg) and (cfg.action_mode == "absolute" or not cfg.sim.kinematic_palm):
+        raise ValueError(
+            "a wrist (palm_offset_limit, palm_yaw_limit) needs a residual action mode and sim.kinematic_palm"
+        )
     if cfg.decision_steps < 1:
         raise ValueError(f"decision_steps must be >= 1, got {cfg.decision_steps}")
     if cfg.residual_penalty < 0.0:

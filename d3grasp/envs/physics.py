@@ -57,15 +57,20 @@ def _set_palm_pose_kernel(
     pos_start: wp.array(dtype=wp.vec3),
     pos_end: wp.array(dtype=wp.vec3),
     quat: wp.array(dtype=wp.quat),
+    yaw_start: wp.array(dtype=float),
+    yaw_end: wp.array(dtype=float),
     alpha: float,
     body_q: wp.array(dtype=wp.transform),
 ):
     # One thread per world: the kinematic palm at fraction ``alpha`` of the control step, on the
-    # straight line from where it was to the commanded position. SolverVBD takes its velocity from
-    # the change against its previous pose, so contacts see the true palm motion.
+    # straight line from where it was to the commanded position, turned about the vertical by the
+    # wrist's yaw offset (0: exactly ``quat``). SolverVBD takes its velocity from the change against
+    # its previous pose, so contacts see the true palm motion.
     w = wp.tid()
     p = pos_start[w] + alpha * (pos_end[w] - pos_start[w])
-    body_q[palm_body[w]] = wp.transform(p, quat[w])
+    yaw = yaw_start[w] + alpha * (yaw_end[w] - yaw_start[w])
+    turn = wp.quat_from_axis_angle(wp.vec3(0.0, 0.0, 1.0), yaw)
+    body_q[palm_body[w]] = wp.transform(p, turn * quat[w])
 
 
 def rigid_iterations_run(n: int, iterations: int) -> list[bool]:
@@ -201,6 +206,8 @@ class Physics:
         self.palm_pos_start = wp.zeros(W, dtype=wp.vec3, device=device)
         self.palm_pos_end = wp.zeros(W, dtype=wp.vec3, device=device)
         self.palm_quat = wp.zeros(W, dtype=wp.quat, device=device)
+        self.palm_yaw_start = wp.zeros(W, dtype=float, device=device)  # the wrist's yaw offset (rad)
+        self.palm_yaw_end = wp.zeros(W, dtype=float, device=device)
         self.graph = None
 
     def substeps(self) -> None:
@@ -217,6 +224,8 @@ class Physics:
                         self.palm_pos_start,
                         self.palm_pos_end,
                         self.palm_quat,
+                        self.palm_yaw_start,
+                        self.palm_yaw_end,
                         float(i + 1) / float(sim.substeps),
                     ],
                     outputs=[self.state_0.body_q],

@@ -85,9 +85,11 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--perception",
         choices=tuple(PERCEPTIONS),
-        default="oracle",
-        help="object pose for the grasp planner: simulator truth (oracle), the RGB-D camera, or both side "
-        "by side (adds a localisation-error table)",
+        default="paper",
+        help="object pose for the grasp planner: the paper's protocol (default: every controller under "
+        "the RGB-D camera, and the rule-based baseline also under the true pose as the reference), "
+        "simulator truth (oracle), the camera, or both for every controller side by side; camera runs "
+        "add a localisation-error table",
     )
     p.add_argument(
         "--resume",

@@ -43,6 +43,7 @@ from d3grasp.eval.metrics import (
     outcomes_markdown,
     table_markdown,
 )
+from d3grasp.eval.paired import compare_pairs, format_table, pair_episodes
 from d3grasp.eval.resume import BatchStore, batch_keys
 from d3grasp.files import atomic_write_text
 from d3grasp.policies import BASELINE, resolve_checkpoint
@@ -58,11 +59,16 @@ GRASP_CHOICES: tuple[str, ...] = ("all", *GRASP_TYPES)
 # env-steps/s), and the soft objects' evaluation took 3.4x as long at their 20 (sim.soft_iterations).
 SOFT_COST = 20.0
 SPLITS: tuple[str, ...] = ("test", "train", "all")
+# Where each controller's object pose comes from, by --perception. "paper" is the paper's protocol
+# (the main command's): every controller under the camera, and the rule-based baseline once more under
+# the oracle pose, the reference for perfect localisation (PAPER_REFERENCE).
 PERCEPTIONS: dict[str, tuple[str, ...]] = {
     "oracle": ("oracle",),
     "camera": ("camera",),
     "both": ("oracle", "camera"),
+    "paper": ("camera",),
 }
+PAPER_REFERENCE = f"{BASELINE}/oracle"
 # Config fields the evaluation sets itself; an override of them would silently change what is measured.
 RESERVED_OVERRIDES: frozenset[str] = frozenset(
     {"objects", "eval_mode", "num_envs", "seed", "grasp_types", "device", "perception"}
@@ -82,6 +88,7 @@ __all__ = [
     "RunSpec",
     "checkpoint_task",
     "evaluate",
+    "perception_jobs",
     "plan_batches",
     "select_objects",
     "write_outputs",
@@ -105,7 +112,8 @@ class EvalSettings:
     compare_baseline: bool = False
     device: str = "cpu"
     env_overrides: dict[str, Any] = field(default_factory=dict)  # e.g. {"phases__disturb_per_direction": 0.1}
-    perception: str = "oracle"  # oracle | camera | both (each controller runs under both, side by side)
+    # oracle | camera | both (each controller under both, side by side) | paper (PERCEPTIONS)
+    perception: str = "oracle"
     ablation: tuple[str, ...] = ()  # checkpoints of the ablation table, "PATH" or "TASK=PATH"
 
     def validate(self) -> None:
@@ -334,6 +342,19 @@ def _eval_batch(
     return [{**ep, "repeat": repeat, "seed": seed} for ep in eps]
 
 
+def perception_jobs(specs: Sequence[RunSpec], perception: str) -> list[tuple[RunSpec, str]]:
+    """``(controller, perception)`` of every run: a controller under the camera is labelled
+    ``"<label>/camera"``; the paper's protocol adds the baseline under the oracle as ``PAPER_REFERENCE``."""
+    jobs = [
+        (spec if p == "oracle" else replace(spec, label=f"{spec.label}/camera"), p)
+        for spec in specs
+        for p in PERCEPTIONS[perception]
+    ]
+    if perception == "paper":
+        jobs += [(replace(s, label=PAPER_REFERENCE), "oracle") for s in specs if s.checkpoint == BASELINE]
+    return jobs
+
+
 def plan_batches(
     jobs: Sequence[tuple[RunSpec, str]],
     ids: Sequence[str],
@@ -379,12 +400,7 @@ def evaluate(
 
     t0 = time.perf_counter()
     settings.validate()
-    # Camera perception runs each controller again under a "<label>/camera" label.
-    jobs = [
-        (spec if p == "oracle" else replace(spec, label=f"{spec.label}/camera"), p)
-        for spec in run_specs(settings)
-        for p in PERCEPTIONS[settings.perception]
-    ]
+    jobs = perception_jobs(run_specs(settings), settings.perception)
     specs = [spec for spec, _ in jobs]
     if settings.split is None:  # record the split actually used
         own_manifest = settings.objects is not None and settings.objects not in OBJECT_SETS
@@ -500,8 +516,10 @@ def _title(spec: RunSpec, s: EvalSettings) -> str:
         who = f"{'policy' if spec.label == 'policy' else spec.label} {ckpt.name}"
         if s.ablation:  # several checkpoints are often all model_<N>.pt: name the run folder too
             who = f"{spec.label} {ckpt.parent.name}/{ckpt.name}"
-    if spec.label.endswith("/camera"):  # the camera-perception rerun of a controller (--perception both)
+    if spec.label.endswith("/camera"):  # a controller under camera perception (camera, both, paper)
         who += ", camera perception"
+    elif spec.label == PAPER_REFERENCE:
+        who += ", oracle pose (the reference for perfect localisation)"
     return f"{who} on {spec.task}: {_conditions(s)}"
 
 
@@ -568,6 +586,10 @@ def write_outputs(
         tables.append(ablation_markdown(summaries, headers, title))
     if len(summaries) > 1:
         tables.append(comparison_markdown(summaries, f"Comparison: {_conditions(result.settings)}"))
+    for label_a, label_b in _paired_runs(result.runs):
+        results = compare_pairs(pair_episodes(result.runs[label_a], result.runs[label_b]))
+        title = f"**Paired by object and seed: {label_a} against {label_b}** (exact sign test)"
+        tables.append(f"{title}\n\n{format_table(results, label_a, label_b)}\n")
     tables += [table_markdown(summaries[label], _title(specs[label], result.settings)) for label in summaries]
     tables.append(grasp_type_markdown(result.runs, "By grasp type"))
     tables.append(outcomes_markdown(result.runs, "How the episodes ended (first cause)"))
@@ -579,6 +601,14 @@ def write_outputs(
     paths["plot"] = out / "plot.png"
     _plot(result, paths["plot"])
     return paths
+
+
+def _paired_runs(runs: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """The runs compared pair by pair in table.md: the policy against the baseline under the same
+    perception, and under the paper's protocol the baseline under the camera against its reference."""
+    pairs = [(f"policy{s}", f"{BASELINE}{s}") for s in ("", "/camera")]
+    pairs.append((f"{BASELINE}/camera", PAPER_REFERENCE))
+    return [(a, b) for a, b in pairs if a in runs and b in runs]
 
 
 def _plot(result: EvalResult, path: Path) -> None:

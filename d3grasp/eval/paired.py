@@ -21,7 +21,7 @@ from typing import Any
 
 from d3grasp.vocabulary import METRICS
 
-__all__ = ["PairedResult", "compare_pairs", "load_pairs", "main", "sign_test_p"]
+__all__ = ["PairedResult", "compare_pairs", "load_pairs", "main", "pair_episodes", "sign_test_p"]
 
 Z95 = 1.959963984540054
 
@@ -64,12 +64,20 @@ def load_pairs(
                 f"{path}: no run {missing} (has {sorted(runs)}); evaluate with --compare baseline"
             )
 
-        def key(ep: dict[str, Any]) -> tuple[str, int, int]:
-            return ep["object"], int(ep["seed"]), int(ep.get("repeat", 0))
-
-        twins = {key(ep): ep for ep in runs[run_b]["episodes"]}
-        pairs += [(ep, twins[key(ep)]) for ep in runs[run_a]["episodes"] if key(ep) in twins]
+        pairs += pair_episodes(runs[run_a]["episodes"], runs[run_b]["episodes"])
     return pairs
+
+
+def pair_episodes(
+    episodes_a: Sequence[dict[str, Any]], episodes_b: Sequence[dict[str, Any]]
+) -> list[tuple[dict[str, Any], dict[str, Any]]]:
+    """``(episode of a, its twin of b)``: the same object, seed and repeat."""
+
+    def key(ep: dict[str, Any]) -> tuple[str, int, int]:
+        return ep["object"], int(ep["seed"]), int(ep.get("repeat", 0))
+
+    twins = {key(ep): ep for ep in episodes_b}
+    return [(ep, twins[key(ep)]) for ep in episodes_a if key(ep) in twins]
 
 
 def compare_pairs(pairs: Sequence[tuple[dict[str, Any], dict[str, Any]]]) -> list[PairedResult]:

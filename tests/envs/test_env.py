@@ -292,6 +292,72 @@ def test_decisions_are_held_for_decision_steps():
         _env((RIGID_MEDIUM_BOX,), decision_steps=0)
 
 
+def test_a_still_wrist_is_the_scripted_palm_path():
+    """With a wrist but the zero action, the palm follows the script exactly: same palm poses and finger
+    targets as the env without one, step for step, through the approach and the grasp."""
+    plain, wrist = _box_env(), _box_env(palm_offset_limit=0.015, palm_yaw_limit=0.3)
+    assert wrist.num_actions == plain.num_actions + 4
+    for _ in range(60):
+        plain.step(torch.zeros(1, plain.num_actions))
+        wrist.step(torch.zeros(1, wrist.num_actions))
+        torch.testing.assert_close(wrist.t_body_q[wrist.i_palm], plain.t_body_q[plain.i_palm], atol=0, rtol=0)
+        torch.testing.assert_close(wrist.finger_target, plain.finger_target, atol=0, rtol=0)
+
+
+def test_the_wrist_offsets_the_palm_at_its_rate_up_to_its_limit():
+    """A constant wrist action a: the palm offset moves towards a x limit at the configured rate per axis
+    (one decision held, the limit reached), the palm turns about the vertical by the yaw offset, and the
+    offset is held from the hold on."""
+    limit, yaw_limit, rate, yaw_rate = 0.01, 0.2, 0.03, 0.6
+    env = _box_env(
+        palm_offset_limit=limit, palm_yaw_limit=yaw_limit, palm_offset_rate=rate, palm_yaw_rate=yaw_rate
+    )
+    a = torch.tensor([[0.0, 0.0, 0.0, 0.0, 1.0, -0.5, 0.2, 0.5]])
+    dt = env.dt
+    for n in range(1, 31):
+        plan = env.script.palm_command(env.episode_length_buf + 1, env.grasp_palm_pos, env.approach_dir)
+        env.step(a)
+        want = np.clip(a[0, 4:7].numpy() * limit, -n * rate * dt, n * rate * dt)
+        np.testing.assert_allclose(env.palm_offset[0].numpy(), want, atol=1e-7)
+        np.testing.assert_allclose(env.root_cmd_pos[0].numpy(), plan[0].numpy() + want, atol=1e-6)
+        yaw = float(np.clip(0.5 * yaw_limit, -n * yaw_rate * dt, n * yaw_rate * dt))
+        assert float(env.palm_yaw[0]) == pytest.approx(yaw, abs=1e-6)
+    # The palm body's orientation: the grasp orientation turned by the yaw about the vertical.
+    q = env.t_body_q[env.i_palm][0, 3:].numpy()
+    g = env.grasp_palm_quat[0].numpy()
+    turn = np.array([0.0, 0.0, np.sin(0.5 * yaw), np.cos(0.5 * yaw)])
+    expected = _quat_mul(turn, g)
+    assert min(np.abs(q - expected).max(), np.abs(q + expected).max()) < 1e-5
+    # Held from the hold on: a 2 mm rise of the palm keeps the rule's grasp, so the episode goes on.
+    env = _box_env(palm_offset_limit=limit)
+    up = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.2, 0.0]])
+    hold, ended = PHASES.index("hold"), []
+    while int(env.phase_of(env.episode_length_buf)[0]) < hold:
+        ended += env.step(up)[3].get("episodes", [])
+    held = env.palm_offset.clone()
+    torch.testing.assert_close(held[0], torch.tensor([0.0, 0.0, 0.2 * limit]), atol=1e-7, rtol=0)
+    for _ in range(5):
+        ended += env.step(-up)[3].get("episodes", [])
+    assert not ended
+    torch.testing.assert_close(env.palm_offset, held, atol=0, rtol=0)
+    with pytest.raises(ValueError, match="wrist"):
+        _env((RIGID_MEDIUM_BOX,), palm_offset_limit=0.01, action_mode="absolute")
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of xyzw quaternions (NumPy reference)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ]
+    )
+
+
 def test_disturbance_force_pushes_a_free_object():
     # The hand waits in its pre-grasp pose; push the free box along +x with 2.5 N for 0.5 s.
     env = _box_env(sim__use_graph=False)

@@ -28,6 +28,7 @@ from d3grasp.paths import default_manifest
 OBJECTS = ("bottle_04", "box_04")  # rigid, medium, test split; the rule picks top and pinch for them
 PUSH_S = 0.1
 QUICK = ["--set", f"phases.disturb_per_direction={PUSH_S}", "--num_envs", "2", "--no-progress"]
+ORACLE = ["--perception", "oracle"]  # the CLI's default is the paper's protocol (test_paper_protocol)
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +68,22 @@ def compare_run(tmp_path_factory: pytest.TempPathFactory, manifest: Path, checkp
     # Two processes, one batch each (policy, baseline): test_same_seed_same_results checks that the
     # baseline's batch gives in its worker process what it gives run alone in this one.
     assert (
-        main([*argv, "--grasp-types", "top", "--seed", "3", "--out", str(out), "--workers", "2", *QUICK]) == 0
+        main(
+            [
+                *argv,
+                "--grasp-types",
+                "top",
+                "--seed",
+                "3",
+                "--out",
+                str(out),
+                "--workers",
+                "2",
+                *QUICK,
+                *ORACLE,
+            ]
+        )
+        == 0
     )
     return out
 
@@ -139,12 +155,36 @@ def _percent(k: int, n: int) -> str:
 def test_same_seed_same_results(tmp_path: Path, manifest: Path, compare_run: Path) -> None:
     argv = ["--checkpoint", "baseline", "--objects", str(manifest), "--grasp-types", "top", "--seed", "3"]
     for name in ("a", "b"):
-        assert main([*argv, "--out", str(tmp_path / name), "--workers", "1", *QUICK]) == 0
+        assert main([*argv, "--out", str(tmp_path / name), "--workers", "1", *QUICK, *ORACLE]) == 0
     a, b = (tmp_path / "a" / "results.json").read_text(), (tmp_path / "b" / "results.json").read_text()
     assert a == b
     # The baseline of the comparison run saw the same objects, seeds and grasp types, in a worker
     # process of its own: same episodes.
     assert json.loads(a)["runs"]["baseline"]["episodes"] == _read(compare_run)["runs"]["baseline"]["episodes"]
+
+
+def test_paper_protocol(tmp_path: Path, manifest: Path, compare_run: Path) -> None:
+    """The default protocol: every controller under the camera, and the baseline also under the oracle
+    pose as the reference, with the pair compared object by object."""
+    argv = ["--checkpoint", "baseline", "--objects", str(manifest), "--grasp-types", "top", "--seed", "3"]
+    assert main([*argv, "--out", str(tmp_path), "--workers", "1", *QUICK]) == 0
+    doc = _read(tmp_path)
+    assert doc["settings"]["perception"] == "paper"
+    assert list(doc["runs"]) == ["baseline/camera", "baseline/oracle"]
+    # The reference is the oracle baseline of the comparison run: same objects, seed and grasp type.
+    assert doc["runs"]["baseline/oracle"]["episodes"] == _read(compare_run)["runs"]["baseline"]["episodes"]
+    camera = doc["runs"]["baseline/camera"]
+    assert "localisation" in camera and "localisation" not in doc["runs"]["baseline/oracle"]
+    table = (tmp_path / "table.md").read_text()
+    assert "oracle pose (the reference for perfect localisation)" in table
+    assert "**Paired by object and seed: baseline/camera against baseline/oracle**" in table
+    oracle = {ep["object"]: ep for ep in doc["runs"]["baseline/oracle"]["episodes"]}
+    for metric in METRICS:
+        only_cam = sum(ep[metric] and not oracle[ep["object"]][metric] for ep in camera["episodes"])
+        only_oracle = sum(oracle[ep["object"]][metric] and not ep[metric] for ep in camera["episodes"])
+        assert f"| {only_cam} | {only_oracle} |" in next(
+            line for line in table.splitlines() if line.startswith(f"| Diverse {metric} |")
+        )
 
 
 def _error_line(capsys: pytest.CaptureFixture[str]) -> str:
@@ -217,7 +257,18 @@ def test_ablation_table(
 
     # Bad input first: a task the file cannot tell, a given task the checkpoint contradicts, one entry.
     out = tmp_path / "out"
-    common = ["--objects", str(manifest), "--grasp-types", "top", "--seed", "3", "--out", str(out), *QUICK]
+    common = [
+        "--objects",
+        str(manifest),
+        "--grasp-types",
+        "top",
+        "--seed",
+        "3",
+        "--out",
+        str(out),
+        *QUICK,
+        *ORACLE,
+    ]
     assert main(["--ablation", str(base_ckpt), str(tactile_ckpt), *common]) == 2
     assert f"TASK={tactile_ckpt}" in _error_line(capsys)
     assert main(["--ablation", f"{BASE}={checkpoint}", str(base_ckpt), *common]) == 2
@@ -358,7 +409,7 @@ def test_a_stopped_run_resumes_where_it_was(
         return counted(*args, **kwargs)
 
     argv = ["--checkpoint", "baseline", "--objects", str(manifest), "--grasp-types", "top", "--seed", "3"]
-    one_per_batch = [*QUICK, "--num_envs", "1", "--workers", "1"]  # two batches of one object each
+    one_per_batch = [*QUICK, *ORACLE, "--num_envs", "1", "--workers", "1"]  # two batches of one object each
     whole, stopped = tmp_path / "whole", tmp_path / "stopped"
     assert main([*argv, "--out", str(whole), *one_per_batch]) == 0
     assert not (whole / BATCH_DIR_NAME).exists()  # removed once the outputs are written

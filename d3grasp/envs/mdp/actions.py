@@ -4,7 +4,8 @@
 rule-based controller inside the environment and offset its targets by up to ``residual_scale``
 rad: per joint (16 actions), or per finger on its three flexion joints (4 actions). The residual
 follows the actions as a low-pass (``residual_smoothing``) or as a clipped integrator
-(``residual_rate`` > 0). A world with action latency k applies the action of k steps ago.
+(``residual_rate`` > 0). A world with action latency k applies the action of k steps ago. With a
+wrist (``palm_offset_limit`` / ``palm_yaw_limit`` > 0) 4 more actions offset the scripted palm path.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from d3grasp.dexhand13 import NUM_FINGER_JOINTS, NUM_FINGERS, finger_joints
 from d3grasp.vocabulary import PHASES
 
 if TYPE_CHECKING:
+    from d3grasp.envs.config import GraspEnvConfig
     from d3grasp.envs.grasp_env import GraspEnv
 
 
@@ -28,12 +30,38 @@ def synergy_matrix(device: torch.device | str = "cpu") -> torch.Tensor:
     return s
 
 
-def acting(env: GraspEnv) -> torch.Tensor:
-    """(W,) bool: the worlds whose actions act at the coming step. In the residual modes the rule alone
-    drives the fingers before ``residual_start`` (e.g. through the scripted approach)."""
+WRIST_ACTIONS = 4  # palm offset along x, y, z (world) and about the vertical (GraspEnvConfig.palm_*)
+
+
+def has_wrist(cfg: GraspEnvConfig) -> bool:
+    """Whether the policy moves the palm too (4 actions after the fingers')."""
+    return cfg.palm_offset_limit > 0.0 or cfg.palm_yaw_limit > 0.0
+
+
+def num_actions(cfg: GraspEnvConfig) -> int:
+    fingers = NUM_FINGERS if cfg.action_mode == "synergy" else NUM_FINGER_JOINTS
+    return fingers + (WRIST_ACTIONS if has_wrist(cfg) else 0)
+
+
+def fingers_acting(env: GraspEnv) -> torch.Tensor:
+    """(W,) bool: the worlds whose finger actions act at the coming step. In the residual modes the
+    rule alone drives the fingers before ``residual_start`` (e.g. through the scripted approach)."""
     if env.residual_base is None:
         return torch.ones(env.num_envs, dtype=torch.bool, device=env.torch_device)
     return env.phase_of(env.episode_length_buf) >= PHASES.index(env.cfg.residual_start)
+
+
+def wrist_acting(env: GraspEnv) -> torch.Tensor:
+    """(W,) bool: the worlds whose wrist moves at the coming step: from the approach through the lift
+    (the offset is held from the hold on, through the pushes)."""
+    if not has_wrist(env.cfg):
+        return torch.zeros(env.num_envs, dtype=torch.bool, device=env.torch_device)
+    return env.phase_of(env.episode_length_buf) <= PHASES.index("lift")
+
+
+def acting(env: GraspEnv) -> torch.Tensor:
+    """(W,) bool: the worlds where some part of the action acts at the coming step."""
+    return fingers_acting(env) | wrist_acting(env)
 
 
 def hold_decisions(env: GraspEnv, actions: torch.Tensor) -> torch.Tensor:
@@ -62,6 +90,9 @@ def apply_actions(env: GraspEnv, actions: torch.Tensor) -> None:
     )
     lat = env.latency.clamp(max=hist.shape[1] - 1)
     applied = hist[torch.arange(env.num_envs), lat]
+    if has_wrist(cfg):
+        move_wrist(env, applied[:, -WRIST_ACTIONS:])
+        applied = applied[:, :-WRIST_ACTIONS]
     if env.residual_base is not None:
         env.residual_base.act()  # advances the rule on the current touch readings
         if cfg.action_mode == "synergy":
@@ -73,7 +104,7 @@ def apply_actions(env: GraspEnv, actions: torch.Tensor) -> None:
             env.residual = b * applied + (1.0 - b) * env.residual
         # Before cfg.residual_start (e.g. the scripted approach) the rule alone drives the fingers.
         if PHASES.index(cfg.residual_start) > 0:  # from the first phase on there is nothing to wait for
-            env.residual = env.residual * acting(env)[:, None]
+            env.residual = env.residual * fingers_acting(env)[:, None]
         desired = env.residual_base.target + cfg.residual_scale * env.residual
         desired = torch.minimum(torch.maximum(desired, env.lower), env.upper)
     else:
@@ -84,3 +115,16 @@ def apply_actions(env: GraspEnv, actions: torch.Tensor) -> None:
     env.actions = actions
     if env.action_hist.shape[1]:
         env.action_hist = hist
+
+
+def move_wrist(env: GraspEnv, wrist: torch.Tensor) -> None:
+    """Move every world's palm offset (``env.palm_offset`` m, ``env.palm_yaw`` rad) towards the wrist
+    actions (W, 4) x their limits, at no more than the configured rates per axis; held outside the
+    phases the wrist acts in. The env adds the offset to the scripted palm path."""
+    cfg = env.cfg
+    moving = wrist_acting(env)
+    max_step, max_turn = cfg.palm_offset_rate * env.dt, cfg.palm_yaw_rate * env.dt
+    step = (wrist[:, :3] * cfg.palm_offset_limit - env.palm_offset).clamp(-max_step, max_step)
+    turn = (wrist[:, 3] * cfg.palm_yaw_limit - env.palm_yaw).clamp(-max_turn, max_turn)
+    env.palm_offset = env.palm_offset + step * moving[:, None]
+    env.palm_yaw = env.palm_yaw + turn * moving

@@ -176,6 +176,8 @@ def _set_hand(env: GraspEnv, w: int, arrays: ModelArrays, gp: GraspPose) -> None
     env.t_palm_pos_start[w] = torch.as_tensor(pre, dtype=torch.float32)
     env.t_palm_pos_end[w] = torch.as_tensor(pre, dtype=torch.float32)
     env.t_palm_quat[w] = torch.as_tensor(gp.palm_quat, dtype=torch.float32)
+    env.palm_offset[w], env.palm_yaw[w] = 0.0, 0.0
+    env.t_palm_yaw_start[w], env.t_palm_yaw_end[w] = 0.0, 0.0
 
 
 def _randomise_dynamics(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
