@@ -83,7 +83,8 @@ def test_schedule_matches_closed_forms(eval_mode: bool) -> None:
         clock = np.array([step / T, np.sin(2 * np.pi * step / T), np.cos(2 * np.pi * step / T)])
         if 0 <= step <= s["end"] + 1:
             row = script.tables(tt.device).clock[script.row(tt)].numpy()
-            np.testing.assert_allclose(row, np.broadcast_to(clock, (W, 3)), atol=1e-6)
+            # float32 tables: sin of an angle up to ~6 pi carries ~1e-6 of round-off.
+            np.testing.assert_allclose(row, np.broadcast_to(clock, (W, 3)), atol=1e-5)
 
 
 def test_scoring_windows_follow_the_schedule() -> None:

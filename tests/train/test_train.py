@@ -639,6 +639,11 @@ def test_checkpoint_records_and_checks_how_actions_become_targets(tmp_path: Path
         "residual_rate": 0.05,
         "residual_start": "approach",
         "action_smoothing": 0.7,
+        "decision_steps": 10,  # the default: a decision held over 10 control steps (issue 42)
+        "palm_offset_limit": 0.0,  # no wrist by default (issue 43)
+        "palm_yaw_limit": 0.0,
+        "palm_offset_rate": 0.02,
+        "palm_yaw_rate": 0.3,
         "obs": asdict(env.cfg.obs),  # the observation scales (tests/test_policy_interface.py)
     }
     runner.load(str(ckpt), load_cfg={"actor": True})  # same settings: loads
