@@ -27,6 +27,7 @@ from d3grasp.policies.checkpoint import (  # noqa: E402
     check_fits,
     read_checkpoint,
 )
+from d3grasp.policies.teacher import TEACHER, PoseTeacher  # noqa: E402
 
 __all__ = ["Controller", "first_episodes", "load_actor", "make_controller"]
 
@@ -43,7 +44,8 @@ class Controller:
 def make_controller(
     env: Any, task: str, checkpoint: str | os.PathLike[str], device: str, data: dict | None = None
 ) -> Controller:
-    """The controller of ``checkpoint`` (a path, or ``"baseline"`` for the rule-based controller).
+    """The controller of ``checkpoint`` (a path, ``"baseline"`` for the rule-based controller or
+    ``"teacher"`` for the privileged teacher, d3grasp.policies.teacher).
 
     ``data``: the checkpoint already read (``read_checkpoint``), to read it once.
     """
@@ -52,6 +54,8 @@ def make_controller(
 
         # The rule resets a world itself when its episode starts (t = 0).
         return Controller(RuleBasedController(env).act, lambda dones: None)
+    if str(checkpoint) == TEACHER:
+        return Controller(PoseTeacher(env).act, lambda dones: None)
     actor = load_actor(env, task, checkpoint, device, data=data)
     actor.reset()
     return Controller(

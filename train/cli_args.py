@@ -121,6 +121,13 @@ def make_train_parser() -> argparse.ArgumentParser:
         "rigid rank as many worlds as it steps in the soft rank's time",
     )
     p.add_argument(
+        "--distill",
+        choices=("teacher",),
+        default=None,
+        help="train by DAgger from the privileged teacher instead of PPO (needs a wrist and camera "
+        "perception: --set palm_offset_limit=0.03 --set palm_yaw_limit=0.5 --set perception=camera)",
+    )
+    p.add_argument(
         "--resume", action="store_true", help="continue from a checkpoint (weights, optimizer, count)"
     )
     p.add_argument(

@@ -118,6 +118,19 @@ _BASE_CFG: dict[str, Any] = {
         "bound_loss_coef": 10.0,
         "phase_names": list(PHASES),
     },
+    # DAgger from the privileged teacher (d3grasp.train.distill) instead of PPO when "teacher" is set
+    # (d3grasp-train --distill teacher). The teacher's share of the episodes falls from 1 to 0 over
+    # beta_iterations; the last buffer_rollouts rollouts are refitted each iteration (the aggregated
+    # data set, bounded); a supervised loss on a fixed target takes a larger rate than PPO's 1e-4.
+    "distillation": {
+        "teacher": None,
+        "beta_iterations": 8,
+        "buffer_rollouts": 4,
+        "epochs": 2,
+        "mini_batches": 2,
+        "learning_rate": 1.0e-3,
+        "max_grad_norm": 1.0,
+    },
 }
 
 

@@ -293,9 +293,8 @@ class D3GraspRunner(OnPolicyRunner):
         start_it = self.current_learning_iteration
         total_it = start_it + num_learning_iterations
         nan_check = self.cfg.get("check_for_nan", True)
-        resample_every = int(self.cfg.get("resample_objects_every") or 0)
         critic_warmup = int(self.cfg.get("critic_warmup_iterations") or 0)
-        saved_at = -1
+        self._saved_at = -1
         t_learn = time.perf_counter()
         wall_before = self.progress.wall_clock_s
         with self.stop_flag.installed() as stop:
@@ -346,24 +345,15 @@ class D3GraspRunner(OnPolicyRunner):
                 self.progress.wall_clock_s = wall_before + (t_end - t_learn)
                 self._log_iteration(it, start_it, total_it, timing, loss_dict, diagnostics)
 
-                done = self.current_learning_iteration
-                if self.log_dir is not None and done % int(self.cfg["save_interval"]) == 0:
-                    self.save(os.path.join(self.log_dir, f"model_{done}.pt"))
-                    saved_at = done
-                if self._agree_to_stop(stop.requested):
+                stop_now, new_env = self._end_iteration(total_it, stop.requested)
+                if stop_now:
                     break
-                if (
-                    resample_every
-                    and self.env_builder is not None
-                    and done % resample_every == 0
-                    and done < total_it
-                ):
-                    env = self._resample_objects(done // resample_every)
+                if new_env is not None:
+                    env = new_env
                     obs = env.get_observations().to(self.device)
 
         if self.log_dir is not None:
-            if saved_at != self.current_learning_iteration:
-                self.save(os.path.join(self.log_dir, f"model_{self.current_learning_iteration}.pt"))
+            self._save_last()
             with open(os.path.join(self.log_dir, "timings.json"), "w", encoding="utf-8") as f:
                 import json
 
@@ -371,6 +361,26 @@ class D3GraspRunner(OnPolicyRunner):
             self.logger.stop_logging_writer()
             if self.logger.writer is not None and hasattr(self.logger.writer, "close"):
                 self.logger.writer.close()
+
+    def _end_iteration(self, total_it: int, stop_requested: bool) -> tuple[bool, Any | None]:
+        """After an iteration: a checkpoint every ``save_interval``, the ranks' agreement to stop, and
+        a new draw of objects every ``resample_objects_every`` iterations. Returns (stop, the new
+        environment or None)."""
+        done = self.current_learning_iteration
+        if self.log_dir is not None and done % int(self.cfg["save_interval"]) == 0:
+            self.save(os.path.join(self.log_dir, f"model_{done}.pt"))
+            self._saved_at = done
+        if self._agree_to_stop(stop_requested):
+            return True, None
+        every = int(self.cfg.get("resample_objects_every") or 0)
+        if every and self.env_builder is not None and done % every == 0 and done < total_it:
+            return False, self._resample_objects(done // every)
+        return False, None
+
+    def _save_last(self) -> None:
+        """The last completed iteration's checkpoint, unless the interval already wrote it."""
+        if self.log_dir is not None and self._saved_at != self.current_learning_iteration:
+            self.save(os.path.join(self.log_dir, f"model_{self.current_learning_iteration}.pt"))
 
     def _resample_objects(self, draw: int) -> Any:
         """Replace the environment by ``env_builder(draw)``: the same task and world count holding

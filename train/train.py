@@ -207,6 +207,8 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
     train_cfg = make_train_cfg(args.task, **overrides)
     for dotted, value in getattr(args, "agent_overrides", None) or ():
         set_cfg_value(train_cfg, dotted, value)
+    if getattr(args, "distill", None):
+        train_cfg["distillation"]["teacher"] = args.distill
 
     experiment_dir = Path(args.log_root) / train_cfg["experiment_name"]
     resume_path = resume_checkpoint(experiment_dir, args.load_run, args.checkpoint) if args.resume else None
@@ -239,7 +241,12 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
             log_dir.mkdir(parents=True)
             print(f"[d3grasp] logging to {log_dir}")
 
-        runner = D3GraspRunner(
+        runner_class = D3GraspRunner
+        if train_cfg["distillation"]["teacher"]:
+            from d3grasp.train.distill import DaggerRunner
+
+            runner_class = DaggerRunner
+        runner = runner_class(
             env, train_cfg, log_dir=log_dir, device=device, task_name=args.task, env_builder=build_env
         )
         if resume_path is not None:

@@ -231,6 +231,12 @@ class GraspEnv:
         self.root_cmd_pos = zeros(W, 3)
         # The wrist's offset of the scripted palm path (GraspEnvConfig.palm_*; zero without a wrist).
         self.palm_offset, self.palm_yaw = zeros(W, 3), zeros(W)
+        # What moves the grasp planned at the camera's estimate onto the grasp at the true pose: palm
+        # offset (m) and turn (rad) on the wrist's axes; zero with the oracle pose (mdp.events).
+        self.pose_correction = zeros(W, 4)
+        # The same grasp moved by the camera's centre error only, its yaw kept (m, world): what an
+        # object that looks the same turned needs (a cylinder's yaw error moves the grasp by cm).
+        self.centre_correction = zeros(W, 3)
         self.root_q_cmd = zeros(W, self.layout.root_q.shape[1])
         # p_anchor = R_a^T p  <=>  row vector p @ R_a
         self.anchor_rot = torch.as_tensor(quat_xyzw_to_matrix(HAND_ANCHOR_QUAT), dtype=f32, device=tdev)

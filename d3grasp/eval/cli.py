@@ -46,7 +46,8 @@ def make_parser() -> argparse.ArgumentParser:
     which.add_argument(
         "--checkpoint",
         help="model_<N>.pt written by d3grasp-train, 'shipped' (the package's trained policy of --task) "
-        "or 'baseline' (the rule-based controller)",
+        "'baseline' (the rule-based controller) or 'teacher' (the privileged teacher: the rule's fingers, "
+        "the wrist onto the grasp at the true pose)",
     )
     which.add_argument(
         "--ablation",

@@ -47,6 +47,7 @@ from d3grasp.eval.paired import compare_pairs, format_table, pair_episodes
 from d3grasp.eval.resume import BatchStore, batch_keys
 from d3grasp.files import atomic_write_text
 from d3grasp.policies import BASELINE, resolve_checkpoint
+from d3grasp.policies.teacher import TEACHER, TEACHER_WRIST
 from d3grasp.vision.perception import localisation_markdown, localisation_summary
 
 OBJECT_SETS: dict[str, tuple[str, ...]] = {
@@ -279,6 +280,8 @@ def run_specs(settings: EvalSettings) -> list[RunSpec]:
             raise ValueError(f"--ablation names one checkpoint twice: {list(settings.ablation)}")
     elif settings.checkpoint == BASELINE:
         specs = [RunSpec(BASELINE, settings.task, BASELINE)]
+    elif settings.checkpoint == TEACHER:  # the privileged teacher, with a wrist if the task has none
+        specs = [RunSpec(TEACHER, settings.task, TEACHER, _teacher_overrides(settings.task))]
     else:
         assert settings.checkpoint is not None  # validate() ensured it
         path = resolve_checkpoint(settings.checkpoint, settings.task)  # "shipped": the package's policy
@@ -287,6 +290,13 @@ def run_specs(settings: EvalSettings) -> list[RunSpec]:
     if settings.compare_baseline:
         specs.append(RunSpec(BASELINE, settings.task, BASELINE))
     return specs
+
+
+def _teacher_overrides(task: str) -> dict[str, Any]:
+    from d3grasp.envs.mdp.actions import has_wrist
+
+    cfg = get_task(task).make_cfg()
+    return {} if has_wrist(cfg) else dict(TEACHER_WRIST)
 
 
 def _run_batch(
@@ -604,9 +614,10 @@ def write_outputs(
 
 
 def _paired_runs(runs: Mapping[str, Any]) -> list[tuple[str, str]]:
-    """The runs compared pair by pair in table.md: the policy against the baseline under the same
-    perception, and under the paper's protocol the baseline under the camera against its reference."""
-    pairs = [(f"policy{s}", f"{BASELINE}{s}") for s in ("", "/camera")]
+    """The runs compared pair by pair in table.md: the policy (or the teacher) against the baseline
+    under the same perception, and under the paper's protocol the baseline under the camera against
+    its reference."""
+    pairs = [(f"{who}{s}", f"{BASELINE}{s}") for who in ("policy", TEACHER) for s in ("", "/camera")]
     pairs.append((f"{BASELINE}/camera", PAPER_REFERENCE))
     return [(a, b) for a, b in pairs if a in runs and b in runs]
 

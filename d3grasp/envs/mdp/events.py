@@ -104,8 +104,21 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
     if env.perception is not None:
         # The planner sees the camera's estimate; the truth only scores its error.
         plan_pos, plan_yaw, plan_ex = _perceive(env, w, obj_pos, qz, yaw, ex, placed)
-    pose = _plan_grasp(env, w, e.id, plan_pos, plan_yaw, plan_ex, estimated=env.perception is not None)
+    estimated = env.perception is not None
+    pose, used_yaw = _plan_grasp(env, w, e.id, plan_pos, plan_yaw, plan_ex, estimated=estimated)
     _set_hand(env, w, arrays, pose)
+    env.pose_correction[w] = 0.0
+    env.centre_correction[w] = 0.0
+    if env.perception is not None:
+        corr = _pose_correction(env, w, e.id, pose, used_yaw, obj_pos, yaw, ex)
+        centre = np.asarray(obj_pos, dtype=np.float64) - np.asarray(plan_pos, dtype=np.float64)
+        env.pose_correction[w] = torch.as_tensor(corr, dtype=torch.float32)
+        env.centre_correction[w] = torch.as_tensor(centre, dtype=torch.float32)
+        env.loc_records[w].update(
+            loc_correction=float(np.linalg.norm(corr[:3])),
+            loc_correction_yaw=float(abs(corr[3])),
+            loc_correction_centre=float(np.linalg.norm(centre)),
+        )
     env.grasp_id[w] = GRASP_TYPES.index(pose.grasp)
     env.object_start[w] = torch.as_tensor(obj_pos, dtype=torch.float32)
     if not soft:
@@ -126,15 +139,16 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
 
 def _plan_grasp(
     env: GraspEnv, w: int, object_id: str, pos: np.ndarray, yaw: float, extents: np.ndarray, estimated: bool
-) -> GraspPose:
-    """World ``w``'s grasp: the planner's override for this world (``env.grasp_override``, as the
-    grasp planner scores its candidates), else the object's stored grasp of the library's grasp file
-    (``env.grasp_plan``: the best measured of the allowed types, or a random allowed type in
-    ``grasp_mode="sample"``), else the geometric rule on the object's size."""
+) -> tuple[GraspPose, float]:
+    """World ``w``'s grasp and the object yaw it was placed at: the planner's override for this
+    world (``env.grasp_override``, as the grasp planner scores its candidates), else the object's
+    stored grasp of the library's grasp file (``env.grasp_plan``: the best measured of the allowed
+    types, or a random allowed type in ``grasp_mode="sample"``), else the geometric rule on the
+    object's size."""
     allowed = tuple(env.cfg.grasp_types)
     override = env.grasp_override[w] if env.grasp_override is not None else None
     if override is not None:
-        return override.place(pos, yaw)
+        return override.place(pos, yaw), yaw
     stored = env.grasp_plan.get(object_id) if env.grasp_plan is not None else None
     name = stored.best(allowed) if stored else None
     if name is not None:
@@ -143,12 +157,46 @@ def _plan_grasp(
             name = types[int(env.rng.integers(len(types)))]
         if estimated:
             yaw = stored.align_yaw(yaw, extents)
-        return stored.grasps[name].place(pos, yaw)
+        return stored.grasps[name].place(pos, yaw), yaw
     if env.cfg.grasp_mode == "sample":
         grasp = allowed[int(env.rng.integers(len(allowed)))]
     else:
         grasp = choose_grasp(extents, allowed, env.cfg.sim.table_height)
-    return grasp_pose(grasp, pos, yaw, extents, env.cfg.sim.table_height)
+    return grasp_pose(grasp, pos, yaw, extents, env.cfg.sim.table_height), yaw
+
+
+def _wrap(angle: float) -> float:
+    return math.atan2(math.sin(angle), math.cos(angle))
+
+
+def _pose_correction(
+    env: GraspEnv,
+    w: int,
+    object_id: str,
+    planned: GraspPose,
+    planned_yaw: float,
+    obj_pos: np.ndarray,
+    obj_yaw: float,
+    extents: np.ndarray,
+) -> np.ndarray:
+    """(4,) what moves the grasp planned from the camera's estimate onto the same grasp at the true
+    pose: the palm's offset (m, world) and its turn about the vertical (rad), the wrist's axes
+    (mdp.actions.move_wrist). The privileged teacher's target and a privileged observation.
+
+    Of the true yaw and its half-turn twin the one nearer the planned yaw is taken: a box fit
+    cannot tell an object's two ends apart (GraspPlan.align_yaw), and a wrist that turns by up to a
+    few tenths of a radian corrects a small turn, not a half turn."""
+    twin = _wrap(obj_yaw + math.pi)
+    yaw = min((obj_yaw, twin), key=lambda y: abs(_wrap(y - planned_yaw)))
+    override = env.grasp_override[w] if env.grasp_override is not None else None
+    stored = env.grasp_plan.get(object_id) if env.grasp_plan is not None else None
+    if override is not None:
+        true = override.place(obj_pos, yaw)
+    elif stored is not None and planned.grasp in stored.grasps:
+        true = stored.grasps[planned.grasp].place(obj_pos, yaw)
+    else:
+        true = grasp_pose(planned.grasp, obj_pos, yaw, extents, env.cfg.sim.table_height)
+    return np.array([*(true.palm_pos - planned.palm_pos), _wrap(yaw - planned_yaw)])
 
 
 def _set_hand(env: GraspEnv, w: int, arrays: ModelArrays, gp: GraspPose) -> None:
