@@ -365,7 +365,7 @@ def test_disturbance_force_pushes_a_free_object():
     mass = float(env.object_mass[0])
     for _ in range(30):
         env.t_object_force[:] = torch.tensor([[2.5, 0.0, 0.0]])
-        env._launch_step()
+        env.launch_step()
     moved = env.object_state()[0][0] - start[0]
     # Pushing force 2.5 N beats the friction limit mu*m*g (~1.4 N at mu = 1): the box slides along +x.
     assert 1.0 * mass * 9.81 < 2.5
