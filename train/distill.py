@@ -62,7 +62,9 @@ class Rollout:
         )
 
 
-def sequence_means(actor: Any, obs: TensorDict, dones: torch.Tensor, h0: tuple[torch.Tensor, torch.Tensor]):
+def sequence_means(
+    actor: Any, obs: TensorDict, dones: torch.Tensor, h0: tuple[torch.Tensor, torch.Tensor]
+) -> torch.Tensor:
     """(T, W, A) the recurrent actor's deterministic actions over a rollout, step by step as in the
     rollout itself: the LSTM state starts at ``h0`` and is zeroed after a step that ended an episode
     (what ``RNNModel.reset(dones)`` does when acting)."""
@@ -99,8 +101,9 @@ class DaggerRunner(D3GraspRunner):
         dcfg = self.cfg["distillation"]
         if dcfg.get("teacher") != TEACHER:
             raise ValueError(f"distillation.teacher must be '{TEACHER}', got {dcfg.get('teacher')!r}")
-        if not getattr(self.alg.actor, "is_recurrent", False):
-            raise ValueError("DAgger here trains the recurrent actor (actor.class_name RNNModel)")
+        rnn = getattr(getattr(self.alg.actor, "rnn", None), "rnn", None)
+        if not isinstance(rnn, torch.nn.LSTM):
+            raise ValueError("DAgger here trains an LSTM actor (actor.class_name RNNModel, rnn_type lstm)")
         PoseTeacher(env)  # a wrist and a residual action mode, or a one-line error now
         self.student_optimizer = torch.optim.Adam(
             self.alg.actor.parameters(), lr=float(dcfg["learning_rate"])
