@@ -145,21 +145,12 @@ class DaggerRunner(D3GraspRunner):
                 timing = IterationTiming(
                     it, sim_s, t_rollout - t_start, t_end - t_rollout, steps * self.worlds_all_ranks
                 )
-                self.timings.append(timing)
-                self.progress.env_steps += timing.env_steps
-                self.progress.wall_clock_s = wall_before + (t_end - t_learn)
+                self._count_iteration(timing, wall_before + (t_end - t_learn))
                 self._log_distill(it, timing, beta, loss, wrist_err)
-                stop_now, new_env = self._end_iteration(total_it, stop.requested)
+                stop_now, env, obs = self._end_iteration(total_it, stop.requested, env, obs)
                 if stop_now:
                     break
-                if new_env is not None:
-                    env = new_env
-                    obs = env.get_observations().to(self.device)
-        if self.log_dir is not None:
-            self._save_last()
-            writer = self.logger.writer
-            if writer is not None and hasattr(writer, "close"):
-                writer.close()
+        self._end_run()
 
     def _collect(
         self, env: Any, obs: TensorDict, steps: int, beta: float, gen: torch.Generator

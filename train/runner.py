@@ -340,47 +340,51 @@ class D3GraspRunner(OnPolicyRunner):
                     update_s=t_end - t_rollout,
                     env_steps=steps * self.worlds_all_ranks,
                 )
-                self.timings.append(timing)
-                self.progress.env_steps += timing.env_steps
-                self.progress.wall_clock_s = wall_before + (t_end - t_learn)
+                self._count_iteration(timing, wall_before + (t_end - t_learn))
                 self._log_iteration(it, start_it, total_it, timing, loss_dict, diagnostics)
-
-                stop_now, new_env = self._end_iteration(total_it, stop.requested)
+                stop_now, env, obs = self._end_iteration(total_it, stop.requested, env, obs)
                 if stop_now:
                     break
-                if new_env is not None:
-                    env = new_env
-                    obs = env.get_observations().to(self.device)
+        self._end_run()
 
-        if self.log_dir is not None:
-            self._save_last()
-            with open(os.path.join(self.log_dir, "timings.json"), "w", encoding="utf-8") as f:
-                import json
+    def _count_iteration(self, timing: IterationTiming, wall_clock_s: float) -> None:
+        """Record a completed iteration's timing and the run's cumulative env-steps and wall-clock."""
+        self.timings.append(timing)
+        self.progress.env_steps += timing.env_steps
+        self.progress.wall_clock_s = wall_clock_s
 
-                json.dump([asdict(t) for t in self.timings], f, indent=1)
-            self.logger.stop_logging_writer()
-            if self.logger.writer is not None and hasattr(self.logger.writer, "close"):
-                self.logger.writer.close()
-
-    def _end_iteration(self, total_it: int, stop_requested: bool) -> tuple[bool, Any | None]:
+    def _end_iteration(
+        self, total_it: int, stop_requested: bool, env: Any, obs: Any
+    ) -> tuple[bool, Any, Any]:
         """After an iteration: a checkpoint every ``save_interval``, the ranks' agreement to stop, and
-        a new draw of objects every ``resample_objects_every`` iterations. Returns (stop, the new
-        environment or None)."""
+        a new draw of objects every ``resample_objects_every`` iterations. Returns (stop, the
+        environment, its observation): a new draw's and its first, or ``env`` and ``obs`` as given."""
         done = self.current_learning_iteration
         if self.log_dir is not None and done % int(self.cfg["save_interval"]) == 0:
             self.save(os.path.join(self.log_dir, f"model_{done}.pt"))
             self._saved_at = done
         if self._agree_to_stop(stop_requested):
-            return True, None
+            return True, env, obs
         every = int(self.cfg.get("resample_objects_every") or 0)
         if every and self.env_builder is not None and done % every == 0 and done < total_it:
-            return False, self._resample_objects(done // every)
-        return False, None
+            env = self._resample_objects(done // every)
+            return False, env, env.get_observations().to(self.device)
+        return False, env, obs
 
-    def _save_last(self) -> None:
-        """The last completed iteration's checkpoint, unless the interval already wrote it."""
-        if self.log_dir is not None and self._saved_at != self.current_learning_iteration:
+    def _end_run(self) -> None:
+        """On rank 0: the last completed iteration's checkpoint (unless the interval wrote it),
+        ``timings.json`` and the logger closed."""
+        if self.log_dir is None:
+            return
+        if self._saved_at != self.current_learning_iteration:
             self.save(os.path.join(self.log_dir, f"model_{self.current_learning_iteration}.pt"))
+        with open(os.path.join(self.log_dir, "timings.json"), "w", encoding="utf-8") as f:
+            import json
+
+            json.dump([asdict(t) for t in self.timings], f, indent=1)
+        self.logger.stop_logging_writer()
+        if self.logger.writer is not None and hasattr(self.logger.writer, "close"):
+            self.logger.writer.close()
 
     def _resample_objects(self, draw: int) -> Any:
         """Replace the environment by ``env_builder(draw)``: the same task and world count holding
