@@ -9,6 +9,7 @@ episodes.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -101,16 +102,17 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
     # A soft body's nodes at the new pose (its rest shape turned by the yaw).
     placed = lay.rest_particle_q[p0 : p0 + n] @ rot_z(yaw).T + obj_pos if soft else None
     plan_pos, plan_yaw, plan_ex = obj_pos, yaw, ex
-    if env.perception is not None:
+    estimated = env.perception is not None
+    if estimated:
         # The planner sees the camera's estimate; the truth only scores its error.
         plan_pos, plan_yaw, plan_ex = _perceive(env, w, obj_pos, qz, yaw, ex, placed)
-    estimated = env.perception is not None
-    pose, used_yaw = _plan_grasp(env, w, e.id, plan_pos, plan_yaw, plan_ex, estimated=estimated)
+    pose, used_yaw, place = _plan_grasp(env, w, e.id, plan_pos, plan_yaw, plan_ex, estimated=estimated)
     _set_hand(env, w, arrays, pose)
     env.pose_correction[w] = 0.0
     env.centre_correction[w] = 0.0
-    if env.perception is not None:
-        corr = _pose_correction(env, w, e.id, pose, used_yaw, obj_pos, yaw, ex)
+    if estimated:
+        true_yaw = _nearer_end(yaw, used_yaw)
+        corr = _pose_correction(pose, used_yaw, place(obj_pos, true_yaw, ex), true_yaw)
         centre = np.asarray(obj_pos, dtype=np.float64) - np.asarray(plan_pos, dtype=np.float64)
         env.pose_correction[w] = torch.as_tensor(corr, dtype=torch.float32)
         env.centre_correction[w] = torch.as_tensor(centre, dtype=torch.float32)
@@ -139,16 +141,18 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
 
 def _plan_grasp(
     env: GraspEnv, w: int, object_id: str, pos: np.ndarray, yaw: float, extents: np.ndarray, estimated: bool
-) -> tuple[GraspPose, float]:
-    """World ``w``'s grasp and the object yaw it was placed at: the planner's override for this
-    world (``env.grasp_override``, as the grasp planner scores its candidates), else the object's
-    stored grasp of the library's grasp file (``env.grasp_plan``: the best measured of the allowed
-    types, or a random allowed type in ``grasp_mode="sample"``), else the geometric rule on the
-    object's size."""
+) -> tuple[GraspPose, float, Callable[[np.ndarray, float, np.ndarray], GraspPose]]:
+    """World ``w``'s grasp, the object yaw it was placed at, and the chosen grasp as a placer (the
+    same grasp at another object pose): the planner's override for this world
+    (``env.grasp_override``, as the grasp planner scores its candidates), else the object's stored
+    grasp of the library's grasp file (``env.grasp_plan``: the best measured of the allowed types, or
+    a random allowed type in ``grasp_mode="sample"``), else the geometric rule on the object's size."""
     allowed = tuple(env.cfg.grasp_types)
     override = env.grasp_override[w] if env.grasp_override is not None else None
+    place: Callable[[np.ndarray, float, np.ndarray], GraspPose]
     if override is not None:
-        return override.place(pos, yaw), yaw
+        place = lambda p, y, ex: override.place(p, y)  # noqa: E731
+        return place(pos, yaw, extents), yaw, place
     stored = env.grasp_plan.get(object_id) if env.grasp_plan is not None else None
     name = stored.best(allowed) if stored else None
     if name is not None:
@@ -157,46 +161,35 @@ def _plan_grasp(
             name = types[int(env.rng.integers(len(types)))]
         if estimated:
             yaw = stored.align_yaw(yaw, extents)
-        return stored.grasps[name].place(pos, yaw), yaw
+        grasp = stored.grasps[name]
+        place = lambda p, y, ex: grasp.place(p, y)  # noqa: E731
+        return place(pos, yaw, extents), yaw, place
     if env.cfg.grasp_mode == "sample":
-        grasp = allowed[int(env.rng.integers(len(allowed)))]
+        kind = allowed[int(env.rng.integers(len(allowed)))]
     else:
-        grasp = choose_grasp(extents, allowed, env.cfg.sim.table_height)
-    return grasp_pose(grasp, pos, yaw, extents, env.cfg.sim.table_height), yaw
+        kind = choose_grasp(extents, allowed, env.cfg.sim.table_height)
+    place = lambda p, y, ex: grasp_pose(kind, p, y, ex, env.cfg.sim.table_height)  # noqa: E731
+    return place(pos, yaw, extents), yaw, place
 
 
 def _wrap(angle: float) -> float:
     return math.atan2(math.sin(angle), math.cos(angle))
 
 
-def _pose_correction(
-    env: GraspEnv,
-    w: int,
-    object_id: str,
-    planned: GraspPose,
-    planned_yaw: float,
-    obj_pos: np.ndarray,
-    obj_yaw: float,
-    extents: np.ndarray,
-) -> np.ndarray:
-    """(4,) what moves the grasp planned from the camera's estimate onto the same grasp at the true
-    pose: the palm's offset (m, world) and its turn about the vertical (rad), the wrist's axes
-    (mdp.actions.move_wrist). The privileged teacher's target and a privileged observation.
+def _nearer_end(true_yaw: float, planned_yaw: float) -> float:
+    """Of the true yaw and its half-turn twin the one nearer the planned yaw: a box fit cannot tell
+    an object's two ends apart (GraspPlan.align_yaw), and a wrist that turns by up to a few tenths of
+    a radian corrects a small turn, not a half turn."""
+    twin = _wrap(true_yaw + math.pi)
+    return min((true_yaw, twin), key=lambda y: abs(_wrap(y - planned_yaw)))
 
-    Of the true yaw and its half-turn twin the one nearer the planned yaw is taken: a box fit
-    cannot tell an object's two ends apart (GraspPlan.align_yaw), and a wrist that turns by up to a
-    few tenths of a radian corrects a small turn, not a half turn."""
-    twin = _wrap(obj_yaw + math.pi)
-    yaw = min((obj_yaw, twin), key=lambda y: abs(_wrap(y - planned_yaw)))
-    override = env.grasp_override[w] if env.grasp_override is not None else None
-    stored = env.grasp_plan.get(object_id) if env.grasp_plan is not None else None
-    if override is not None:
-        true = override.place(obj_pos, yaw)
-    elif stored is not None and planned.grasp in stored.grasps:
-        true = stored.grasps[planned.grasp].place(obj_pos, yaw)
-    else:
-        true = grasp_pose(planned.grasp, obj_pos, yaw, extents, env.cfg.sim.table_height)
-    return np.array([*(true.palm_pos - planned.palm_pos), _wrap(yaw - planned_yaw)])
+
+def _pose_correction(planned: GraspPose, planned_yaw: float, true: GraspPose, true_yaw: float) -> np.ndarray:
+    """(4,) what moves the grasp planned from the camera's estimate (at object yaw ``planned_yaw``)
+    onto the same grasp at the true pose (``true``, at ``true_yaw``, ``_nearer_end``): the palm's
+    offset (m, world) and its turn about the vertical (rad), the wrist's axes
+    (mdp.actions.move_wrist). The privileged teacher's target."""
+    return np.array([*(true.palm_pos - planned.palm_pos), _wrap(true_yaw - planned_yaw)])
 
 
 def _set_hand(env: GraspEnv, w: int, arrays: ModelArrays, gp: GraspPose) -> None:
