@@ -6,7 +6,8 @@ After each control step ``t`` (the state the step left), per world ``w``:
   world whose pads show a grasp (a thumb pad and an opposing finger pad each with more than
   ``GRASP_CONTACT_FORCE`` from the object), or whose rule has settled (``rule_settled``; False where
   no rule runs in the environment), counts the steps in a row it has done so; after
-  ``settle_steps`` its lift starts at ``t + 1``.
+  ``settle_steps`` its lift starts at ``t + 1``. With ``lift_on_pads`` 0 only the rule's settling
+  counts (the proprioceptive closing prior of the Base ablation: no touch times its lift).
 - **s_grasp**: at the step the lift starts, the pads show a grasp. The pads touching the object then
   and at the hold's start are kept for the records.
 - **s_lift**: during the hold's scoring window the object stays within ``LIFT_TOLERANCE`` of
@@ -84,6 +85,7 @@ class ScoreParams:
     max_episode_length: int
     settle_steps: int  # steps in a row of touch before a touch-timed lift starts
     lift_on_touch: int  # 1: touch times the lift
+    lift_on_pads: int  # 1: the pads' grasp counts as touch; 0: only the rule's settling does
     eval_mode: int  # 1: only a non-finite state or the time-out ends an episode
     lift_height: float
 
@@ -239,7 +241,7 @@ def _score_kernel(
     start = int(lift_start[w])
     if prm.lift_on_touch != 0:
         waiting = t >= prm.grasp_start and t < start
-        touch = grasp or rule_settled[w]
+        touch = (grasp and prm.lift_on_pads != 0) or rule_settled[w]
         steps = int(0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
         if waiting and touch:
             steps = int(touch_steps[w]) + 1
@@ -362,7 +364,7 @@ def score_step_numpy(
     grasp = (touching & (role == PAD_THUMB)).any(-1) & (touching & (role == PAD_OPPOSING)).any(-1)
     if prm.lift_on_touch:
         waiting = (t >= prm.grasp_start) & (t < s["lift_start"])
-        touch = grasp | inp["rule_settled"]
+        touch = (grasp & bool(prm.lift_on_pads)) | inp["rule_settled"]
         s["touch_steps"] = np.where(waiting & touch, s["touch_steps"] + 1, 0)
         ready = waiting & (s["touch_steps"] >= prm.settle_steps)
         s["lift_start"] = np.where(ready, np.minimum(t + 1, s["lift_start"]), s["lift_start"])

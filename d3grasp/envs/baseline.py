@@ -16,11 +16,18 @@ no pad: its joint stops with the thumb's pads.
 hand is closing, the grasp type) with its state in :class:`RuleState`; it knows nothing of the
 environment. :class:`RuleBasedController` runs it on an environment's sensor readings and acts
 through the same interface as a policy (normalised joint targets), so it runs wherever a policy
-does. It reads the pad sensors directly rather than the observation: the proprioception-only
-ablation's observation has no touch, and the baseline needs it. It reads the pads' contacts with
+does. It reads the pad sensors directly rather than the observation (a policy's observation may
+leave touch out; the Base ablation's env sets ``rule.stop_on`` "stall", and its rule reads no pad).
+It reads the pads' contacts with
 the object only (``Sensors.pad_force_object``): each finger stops on the object, not on the table
 (measured before: a fingertip pressing the table stopped its finger in about a fifth of the
 failed train-split grasps, with no force on the object at all).
+
+``stop_on="stall"`` is the rule without touch, the closing prior of the paper's Base ablation
+(proprioception only): a joint stops where its drive lags its target by more than ``stall_lag``,
+i.e. where something holds the link back, whatever touches it. Free closing at ``close_speed``
+1.5 rad/s lags ~0.05 rad (measured on the test split's first 8 rigid objects: 0.05 rad at
+1.1-1.2 rad/s of joint speed), so 0.15 rad is three times the free lag.
 """
 
 from __future__ import annotations
@@ -40,23 +47,9 @@ from d3grasp.dexhand13 import (
     PAD_LINK,
     finger_joints,
 )
+from d3grasp.envs.config import BaselineConfig
 from d3grasp.envs.grasps import GRASPS
 from d3grasp.vocabulary import GRASP_TYPES, PHASES
-
-
-@dataclass
-class BaselineConfig:
-    close_speed: float = 1.5  # rad/s of joint target per flexion joint
-    force_threshold: float = 0.5  # N on a pad stops the joints proximal to it
-    squeeze: float = 0.1  # rad added beyond the stopping point (rigid objects)
-    # A soft object gives under the pads: at 0.1 rad the grip forms on the few nodes under the
-    # fingertips and the pushes tear the body out (docs/design.md, Soft objects under the push).
-    # Measured on the 20 soft train objects at seeds 0 and 1 (40 episodes): held through the six
-    # pushes 14 at 0.1 rad, 21 at 0.25, 24 at 0.4; lifted 29, 29, 31. On the 104 rigid train objects
-    # 0.25 lifted 61 against 81 (a grip closed on touch is an equilibrium that a deeper squeeze
-    # breaks), so rigid objects keep 0.1.
-    squeeze_deformable: float = 0.4
-    per_joint: bool = True  # False: a finger's first touch stops all of its joints
 
 
 def stop_matrix(per_joint: bool = True) -> torch.Tensor:
@@ -149,12 +142,17 @@ def rule_step(
 ) -> torch.Tensor:
     """Advance the rule by one control step of ``dt`` s and return the joint targets (W, 16).
 
-    ``pad_force`` (W, 11, 3) the pad readings (N), ``joint_q`` (W, 16) the joint positions,
+    ``pad_force`` (W, 11, 3) the pad readings (N; unread with ``cfg.stop_on`` "stall"), ``joint_q``
+    (W, 16) the joint positions,
     ``closing`` (W,) whether the grasp phase has begun, ``grasp_id`` (W,) the grasp type,
     ``object_soft`` (W,) bool which worlds hold a soft object (None: none).
     """
-    force = torch.linalg.norm(pad_force, dim=-1)  # (W, 11)
-    touched = (force > cfg.force_threshold).float() @ tables.stops.T > 0  # (W, 16)
+    if cfg.stop_on == "stall":
+        # Held back: the drive lags its target by more than free closing does. No pad is read.
+        touched = state.target - joint_q > cfg.stall_lag
+    else:
+        force = torch.linalg.norm(pad_force, dim=-1)  # (W, 11)
+        touched = (force > cfg.force_threshold).float() @ tables.stops.T > 0  # (W, 16)
     uses = tables.grasp_uses[grasp_id]
     newly = touched & uses & ~state.stopped & closing[:, None]
     if newly.any():
@@ -184,7 +182,8 @@ class RuleBasedController:
 
     def __init__(self, env: Any, cfg: BaselineConfig | None = None) -> None:
         self.env = env
-        self.cfg = cfg or BaselineConfig()
+        # The environment's rule settings (GraspEnvConfig.rule) unless a config is given.
+        self.cfg = cfg or getattr(getattr(env, "cfg", None), "rule", None) or BaselineConfig()
         self.rest = rest_targets(env.lower, env.upper)
         self.tables = RuleTables.make(self.cfg, env.upper)
         self.state = RuleState.open(env.num_envs, env.lower)  # every world restarts at its first step

@@ -167,6 +167,32 @@ its manifest, made by ``d3grasp-assets plan-grasps``: candidates scored in simul
 to the rule for an object it does not list; ``rule``: the geometric rule on the object's size alone
 (``d3grasp.envs.grasps.choose_grasp``)."""
 
+CLOSING_PRIORS: tuple[str, ...] = ("touch", "stall")
+"""What stops the rule's closing joints and times the lift (``BaselineConfig.stop_on``). ``touch``: the
+pads (the paper's baseline); ``stall``: the joints' own tracking lag, and the lift starts when every
+closing joint has stalled: the Base ablation's prior, which reads no touch anywhere."""
+
+
+@dataclass
+class BaselineConfig:
+    """The rule-based baseline's settings (``d3grasp.envs.baseline``): also the prior every residual
+    policy acts on."""
+
+    close_speed: float = 1.5  # rad/s of joint target per flexion joint
+    force_threshold: float = 0.5  # N on a pad stops the joints proximal to it
+    squeeze: float = 0.1  # rad added beyond the stopping point (rigid objects)
+    # A soft object gives under the pads: at 0.1 rad the grip forms on the few nodes under the
+    # fingertips and the pushes tear the body out (docs/design.md, Soft objects under the push).
+    # Measured on the 20 soft train objects at seeds 0 and 1 (40 episodes): held through the six
+    # pushes 14 at 0.1 rad, 21 at 0.25, 24 at 0.4; lifted 29, 29, 31. On the 104 rigid train objects
+    # 0.25 lifted 61 against 81 (a grip closed on touch is an equilibrium that a deeper squeeze
+    # breaks), so rigid objects keep 0.1.
+    squeeze_deformable: float = 0.4
+    per_joint: bool = True  # False: a finger's first touch stops all of its joints
+    stop_on: str = "touch"  # see CLOSING_PRIORS
+    stall_lag: float = 0.15  # rad of target - position that counts as a stalled joint (stop_on stall)
+
+
 PERCEPTION_MODES: tuple[str, ...] = ("oracle", "camera")
 """Where the grasp planner gets the object's pose and size. ``oracle``: the simulator's ground truth.
 ``camera``: an RGB-D camera per world (Newton's ray-traced SensorCamera) and d3grasp.vision's
@@ -203,6 +229,7 @@ class GraspEnvConfig:
     grasp_mode: str = "rule"  # rule: the best type (file) or the size rule; sample: uniform per episode
     grasp_source: str = "file"  # see GRASP_SOURCES
     perception: str = "oracle"  # see PERCEPTION_MODES
+    rule: BaselineConfig = field(default_factory=BaselineConfig)  # the rule, and the residual's prior
     action_mode: str = "synergy"  # see ACTION_MODES
     # rad of joint-target offset at a residual of 1 (residual, synergy modes). 0.1, the rule's own squeeze
     # beyond the touch: PPO over the planned grasps with 0.4 rad of authority drifted 38 points of train

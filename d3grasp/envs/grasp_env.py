@@ -35,7 +35,7 @@ from d3grasp.authoring.hand import quat_xyzw_to_matrix
 from d3grasp.authoring.manifest import resolve_asset_path
 from d3grasp.dexhand13 import ABDUCTION_JOINTS, NUM_FINGER_JOINTS, NUM_FINGERS
 from d3grasp.envs.baseline import RuleBasedController, rest_targets
-from d3grasp.envs.config import ACTION_MODES, GRASP_SOURCES, PERCEPTION_MODES, GraspEnvConfig
+from d3grasp.envs.config import ACTION_MODES, CLOSING_PRIORS, GRASP_SOURCES, PERCEPTION_MODES, GraspEnvConfig
 from d3grasp.envs.grasp_file import changed_settings, environment_record, load_grasp_plan
 from d3grasp.envs.mdp import actions as mdp_actions
 from d3grasp.envs.mdp import events, observations, rewards, terminations
@@ -524,6 +524,8 @@ def _check_config(cfg: GraspEnvConfig, num_envs: int) -> None:
         raise ValueError(f"unknown grasp_source '{cfg.grasp_source}'; known: {list(GRASP_SOURCES)}")
     if cfg.perception not in PERCEPTION_MODES:
         raise ValueError(f"unknown perception '{cfg.perception}'; known: {list(PERCEPTION_MODES)}")
+    if cfg.rule.stop_on not in CLOSING_PRIORS:
+        raise ValueError(f"unknown rule.stop_on '{cfg.rule.stop_on}'; known: {list(CLOSING_PRIORS)}")
 
 
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")

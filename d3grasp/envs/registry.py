@@ -37,8 +37,10 @@ def _deformable() -> GraspEnvConfig:
 
 
 def _base() -> GraspEnvConfig:
-    # Paper ablation "Base": proprioception only, symmetric actor-critic.
+    # Paper ablation "Base": proprioception only, symmetric actor-critic. Its prior reads no touch
+    # either: the rule's joints stop on stall and the lift starts when they all have.
     cfg = _mixed()
+    cfg.rule.stop_on = "stall"
     cfg.tactile_obs = False
     cfg.privileged_obs = False
     return cfg

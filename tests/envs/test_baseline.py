@@ -116,3 +116,33 @@ def test_a_soft_object_is_squeezed_deeper_than_a_rigid_one() -> None:
     state, tables = _rule(2, cfg)
     target = rule_step(state, tables, cfg, pressed, q, closing, grasp, DT)
     torch.testing.assert_close(target[:, 1:4], torch.tensor([[0.40, 0.30, 0.20]] * 2))
+
+
+def test_the_stall_prior_stops_a_held_back_joint_and_reads_no_pad() -> None:
+    """The Base ablation's prior: a joint whose drive lags its target by more than ``stall_lag`` stops
+    (at its position plus the squeeze); the pads, pressed hard everywhere, stop nothing."""
+    cfg = BaselineConfig(close_speed=1.5, squeeze=0.1, stop_on="stall", stall_lag=0.15)
+    state, tables = _rule(1, cfg)
+    grasp = torch.tensor([GRASP_TYPES.index("top")])
+    closing = torch.tensor([True])
+    every_pad = _pads(1, {(0, p): 5.0 for p in range(11)})
+    for _ in range(8):  # free closing: the joints keep up with their targets
+        rule_step(state, tables, cfg, every_pad, state.target.clone(), closing, grasp, DT)
+    flexion = [j for j in range(16) if j % 4]
+    torch.testing.assert_close(state.target[0, flexion], torch.full((12,), 8 * STEP))  # 0.2 rad
+    assert not state.stopped.any()
+    q = state.target.clone()
+    q[0, 1] = 0.04  # held back: 0.16 rad behind its target
+    q[0, 5] = 0.06  # 0.14 rad behind: still closing
+    target = rule_step(state, tables, cfg, every_pad, q, closing, grasp, DT)
+    assert target[0, 1].item() == pytest.approx(0.14)  # 0.04 + the squeeze
+    assert target[0, 5].item() == pytest.approx(9 * STEP)
+    assert state.stopped[0].nonzero().flatten().tolist() == [1]
+
+
+def test_an_unknown_closing_prior_is_a_one_line_error() -> None:
+    from d3grasp.envs.config import GraspEnvConfig
+    from d3grasp.envs.grasp_env import _check_config
+
+    with pytest.raises(ValueError, match="unknown rule.stop_on 'vision'; known: \\['touch', 'stall'\\]"):
+        _check_config(GraspEnvConfig(rule=BaselineConfig(stop_on="vision")), num_envs=1)

@@ -24,11 +24,25 @@ W, BODIES = 48, 60
 GRID = 1.0 / 128.0
 
 
-def _params(script: EpisodeScript, eval_mode: bool, lift_on_touch: bool) -> sk.ScoreParams:
+def _params(
+    script: EpisodeScript, eval_mode: bool, lift_on_touch: bool, lift_on_pads: bool = True
+) -> sk.ScoreParams:
     phases = PhaseConfig(lift_on_touch=lift_on_touch, lift_height=0.1)
-    prm = score_params(script, phases, 1.0 / 60.0, eval_mode)
+    prm = score_params(script, phases, 1.0 / 60.0, eval_mode, lift_on_pads=lift_on_pads)
     prm.settle_steps = 3
     return prm
+
+
+def _schedule(script: EpisodeScript) -> dict[str, np.ndarray]:
+    """The scoring's read-only tables of ``script`` as host arrays (the NumPy twin's ``sched``)."""
+    tab = script.tables(torch.device("cpu"))
+    return {
+        "in_hold_score": tab.in_hold_score.numpy(),
+        "in_push_score": tab.in_push_score.numpy(),
+        "push_started": tab.push_started.numpy(),
+        "scored_push": tab.scored_push.numpy(),
+        "pad_role": pad_roles(),
+    }
 
 
 class _Episodes:
@@ -110,20 +124,16 @@ def _upload(inp: dict[str, np.ndarray]) -> sk.ScoreInputs:
     return sk.ScoreInputs(**arrays)
 
 
-@pytest.mark.parametrize(("eval_mode", "lift_on_touch"), [(True, True), (False, True), (True, False)])
-def test_kernel_matches_numpy_twin(eval_mode: bool, lift_on_touch: bool) -> None:
+@pytest.mark.parametrize(
+    ("eval_mode", "lift_on_touch", "lift_on_pads"),
+    [(True, True, True), (False, True, True), (True, False, True), (True, True, False)],
+)
+def test_kernel_matches_numpy_twin(eval_mode: bool, lift_on_touch: bool, lift_on_pads: bool) -> None:
     phases = PhaseConfig()
     phases.disturb_per_direction = 0.1  # 6 steps a push: every push within a short episode
     script = EpisodeScript(phases, 60.0, eval_mode=True)
-    prm = _params(script, eval_mode, lift_on_touch)
-    tab = script.tables(torch.device("cpu"))
-    sched_np = {
-        "in_hold_score": tab.in_hold_score.numpy(),
-        "in_push_score": tab.in_push_score.numpy(),
-        "push_started": tab.push_started.numpy(),
-        "scored_push": tab.scored_push.numpy(),
-        "pad_role": pad_roles(),
-    }
+    prm = _params(script, eval_mode, lift_on_touch, lift_on_pads)
+    sched_np = _schedule(script)
     dtypes = {"pad_role": wp.int32, "scored_push": wp.int32}
     sched = sk.ScoreSchedule(**{k: wp.array(v, dtype=dtypes.get(k, wp.bool)) for k, v in sched_np.items()})
     state = sk.ScoreState.allocate(W, NUM_PADS, script.phase_start["lift"])
@@ -149,5 +159,42 @@ def test_kernel_matches_numpy_twin(eval_mode: bool, lift_on_touch: bool) -> None
     expected |= {sk.LOST_UNDER_PUSH + k for k in range(3)}
     assert expected <= set(seen), (sorted(expected - set(seen)), sorted(seen))
     assert twin["s_grasp"].any() and not twin["s_grasp"].all()
-    if lift_on_touch:
+    if lift_on_touch and lift_on_pads:
         assert (twin["lift_start"] < script.phase_start["lift"]).any()  # touch started some lifts early
+
+
+def test_without_the_pads_only_the_rule_settling_times_the_lift() -> None:
+    """``lift_on_pads`` off (the Base ablation's prior): pads that show a grasp through the whole
+    grasp phase start no lift early, a rule that has settled for ``settle_steps`` does."""
+    script = EpisodeScript(PhaseConfig(), 60.0, eval_mode=True)
+    sched = _schedule(script)
+    g0, lift0 = script.phase_start["grasp"], script.phase_start["lift"]
+    roles = pad_roles()
+    forces = np.zeros((2, NUM_PADS, 3), dtype=np.float32)
+    forces[:, np.flatnonzero(roles == sk.PAD_THUMB)[0], 2] = 2.0  # a thumb pad and an opposing pad
+    forces[:, np.flatnonzero(roles == sk.PAD_OPPOSING)[0], 2] = 2.0
+    starts = {}
+    for pads in (True, False):
+        prm = _params(script, True, True, lift_on_pads=pads)
+        state = sk.ScoreState.allocate(2, NUM_PADS, lift0).numpy()
+        for t in range(g0, lift0):
+            body_q = np.zeros((2, 7), dtype=np.float32)
+            body_q[:, 6] = 1.0
+            inp = {
+                "t": np.full(2, t, dtype=np.int64),
+                "body_q": body_q,
+                "palm_body": np.array([0, 1], dtype=np.int32),
+                "obj_pos": np.zeros((2, 3), dtype=np.float32),
+                "object_start": np.zeros((2, 3), dtype=np.float32),
+                "pad_force_object": forces,
+                "pad_force_true": forces,
+                "finite": np.ones(2, dtype=bool),
+                # World 1's rule settles 10 steps into the grasp phase.
+                "rule_settled": np.array([False, t >= g0 + 10]),
+                "disturb_order": np.tile(np.arange(6), (2, 1)),
+            }
+            sk.score_step_numpy(prm, sched, inp, state)
+        starts[pads] = state["lift_start"].tolist()
+    settle = prm.settle_steps
+    assert starts[True] == [g0 + settle, g0 + settle]  # the pads grasp from the phase's first step
+    assert starts[False] == [lift0, g0 + 10 + settle]  # only the settled rule starts a lift

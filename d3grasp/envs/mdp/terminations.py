@@ -89,14 +89,18 @@ _STATE_VIEWS = {
 }
 
 
-def score_params(script: EpisodeScript, phases: PhaseConfig, dt: float, eval_mode: bool) -> sk.ScoreParams:
-    """The scoring kernel's parameters for an episode script and its phase settings."""
+def score_params(
+    script: EpisodeScript, phases: PhaseConfig, dt: float, eval_mode: bool, lift_on_pads: bool = True
+) -> sk.ScoreParams:
+    """The scoring kernel's parameters for an episode script and its phase settings; ``lift_on_pads``
+    False: only the rule's settling times the lift (``BaselineConfig.stop_on`` "stall")."""
     prm = sk.ScoreParams()
     prm.grasp_start = script.phase_start["grasp"]
     prm.hold_start = script.phase_start["hold"]
     prm.max_episode_length = script.max_episode_length
     prm.settle_steps = max(1, round(phases.grasp_settle / dt))
     prm.lift_on_touch = int(phases.lift_on_touch)
+    prm.lift_on_pads = int(lift_on_pads)
     prm.eval_mode = int(eval_mode)
     prm.lift_height = phases.lift_height
     return prm
@@ -107,7 +111,7 @@ def allocate(env: GraspEnv) -> None:
     launch captured as a graph. Reads the script, the sensors' pad forces, the state's body poses,
     and ``env.object_start`` and ``env.disturb_order`` (which resets write in place)."""
     W, dev, script, ph = env.num_envs, env.wp_device, env.script, env.cfg.phases
-    prm = score_params(script, ph, env.dt, env.cfg.eval_mode)
+    prm = score_params(script, ph, env.dt, env.cfg.eval_mode, lift_on_pads=env.cfg.rule.stop_on == "touch")
     tab = script.tables(env.torch_device)
     env.score_params = prm
     env.score_schedule = sk.ScoreSchedule(
