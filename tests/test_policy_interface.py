@@ -88,3 +88,23 @@ def test_shipped_checkpoint_predates_the_record_and_still_fits() -> None:
     cfg.obs.palm_offset_scale = 5.0
     with pytest.raises(CheckpointError, match=r"obs\.palm_offset_scale=10\.0 \(environment: 5\.0\)"):
         _check(infos, cfg, str(path))
+
+
+def test_the_shipped_ablation_checkpoints_fit_their_tasks() -> None:
+    """``d3grasp-eval --ablation shipped``: the three checkpoints in the paper's order, each on the task
+    it records, each fitting the environment its record builds; Base's prior reads no touch."""
+    from d3grasp.eval.evaluate import EvalSettings, run_specs
+    from d3grasp.policies import SHIPPED_ABLATION
+
+    settings = EvalSettings(checkpoint=None, ablation=("shipped",), perception="paper")
+    settings.validate()
+    specs = run_specs(settings)
+    assert [s.task for s in specs] == list(SHIPPED_ABLATION)
+    assert [s.label for s in specs] == ["Base", "Base+Tactile", "Asymmetric"]
+    for spec in specs:
+        data = read_checkpoint(spec.checkpoint)
+        assert data["infos"]["task"] == spec.task
+        built = apply_overrides(get_task(spec.task).make_cfg(), interface_overrides(data))
+        _check(data["infos"], built, str(spec.checkpoint))
+    assert get_task("D3Grasp-DexHand13-Base-v0").make_cfg().rule.stop_on == "stall"
+    assert get_task("D3Grasp-DexHand13-BaseTactile-v0").make_cfg().rule.stop_on == "touch"

@@ -3,11 +3,13 @@
     d3grasp-eval --checkpoint logs/rsl_rl/<exp>/<run>/model_1000.pt --compare baseline
     d3grasp-eval --checkpoint baseline --objects deformable --split test --episodes-per-object 3
     d3grasp-eval --ablation <base run>/model_1000.pt <tactile run>/model_1000.pt <asym run>/model_1000.pt
+    d3grasp-eval --ablation shipped --compare baseline     # the package's three ablation checkpoints
 
 Writes ``results.json`` (settings and every episode), ``summary.csv``, ``table.md`` and ``plot.png``
 to ``--out`` (default ``eval_out/``). ``--ablation`` evaluates several checkpoints (each on the task
-it was trained on, or ``TASK=PATH``) into the paper's ablation table. A stopped run continues with
-``--resume`` (the same command and ``--out``): finished batches are kept in ``OUT/.batches/``.
+it was trained on, or ``TASK=PATH``; ``shipped``: the package's three) into the paper's ablation
+table. A stopped run continues with ``--resume`` (the same command and ``--out``): finished batches
+are kept in ``OUT/.batches/``.
 ``--set KEY=VALUE`` overrides an environment config field (``phases.disturb_per_direction=0.1``); it
 changes what is measured, so it is meant for debugging and quick checks, and is recorded in
 results.json.
@@ -54,7 +56,8 @@ def make_parser() -> argparse.ArgumentParser:
         nargs="+",
         metavar="[TASK=]CKPT",
         help="ablation mode: several checkpoints (e.g. the Base, BaseTactile and asymmetric runs) in one "
-        "table, each on the task it was trained on (read from the checkpoint or its run folder, or TASK=)",
+        "table, each on the task it was trained on (read from the checkpoint or its run folder, or TASK=); "
+        "'shipped': the package's three ablation checkpoints",
     )
     p.add_argument("--task", default=DEFAULT_TASK, help=f"registered task (default {DEFAULT_TASK})")
     p.add_argument(

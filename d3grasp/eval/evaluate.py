@@ -46,7 +46,7 @@ from d3grasp.eval.metrics import (
 from d3grasp.eval.paired import compare_pairs, format_table, pair_episodes
 from d3grasp.eval.resume import BatchStore, batch_keys
 from d3grasp.files import atomic_write_text
-from d3grasp.policies import BASELINE, resolve_checkpoint
+from d3grasp.policies import BASELINE, SHIPPED, resolve_checkpoint, shipped_ablation
 from d3grasp.policies.teacher import TEACHER, TEACHER_WRIST
 from d3grasp.vision.perception import localisation_markdown, localisation_summary
 
@@ -121,8 +121,8 @@ class EvalSettings:
         get_task(self.task)  # UnknownTaskError
         if (self.checkpoint is None) == (not self.ablation):
             raise ValueError("give either a checkpoint or the ablation checkpoints, not both or neither")
-        if len(self.ablation) == 1:
-            raise ValueError("--ablation compares several checkpoints: give two or more")
+        if len(self.ablation) == 1 and self.ablation != (SHIPPED,):
+            raise ValueError("--ablation compares several checkpoints: give two or more, or 'shipped'")
         if self.perception not in PERCEPTIONS:
             raise ValueError(f"--perception must be one of {list(PERCEPTIONS)}, got '{self.perception}'")
         if self.split is not None and self.split not in SPLITS:
@@ -269,7 +269,8 @@ def run_specs(settings: EvalSettings) -> list[RunSpec]:
     from d3grasp.policies.checkpoint import interface_overrides, read_checkpoint
 
     if settings.ablation:
-        resolved = [checkpoint_task(spec) for spec in settings.ablation]
+        entries = shipped_ablation() if settings.ablation == (SHIPPED,) else settings.ablation
+        resolved = [checkpoint_task(spec) for spec in entries]
         names = [_ablation_name(task) for task, _, _ in resolved]
         specs = []
         for (task, path, data), name in zip(resolved, names, strict=True):
@@ -533,11 +534,13 @@ def _title(spec: RunSpec, s: EvalSettings) -> str:
     return f"{who} on {spec.task}: {_conditions(s)}"
 
 
-def _ablation_header(spec: RunSpec) -> str:
-    """The ablation table's column head: which senses the actor reads and whether the critic is
-    asymmetric (reads the privileged group), as in the paper's ablation table."""
+def _ablation_header(spec: RunSpec, label: str) -> str:
+    """The ablation table's column head of run ``label``: which senses the actor reads and whether the
+    critic is asymmetric (reads the privileged group), as in the paper's ablation table; the baseline's
+    with its perception where the label names one (``baseline/camera`` beside ``baseline/oracle``)."""
     if spec.checkpoint == BASELINE:
-        return "rule-based baseline"
+        _, _, perception = label.partition("/")
+        return f"rule-based baseline, {perception}" if perception else "rule-based baseline"
     task = get_task(spec.task)
     actor = "proprioception + tactile" if task.make_cfg().tactile_obs else "proprioception"
     if "privileged" in task.critic_groups:
@@ -591,7 +594,7 @@ def write_outputs(
     specs = {label: _spec_of(result, label) for label in result.runs}
     tables = []
     if result.settings.ablation:
-        headers = {label: _ablation_header(spec) for label, spec in specs.items()}
+        headers = {label: _ablation_header(spec, label) for label, spec in specs.items()}
         title = f"Ablation, every episode: {_conditions(result.settings)}"
         tables.append(ablation_markdown(summaries, headers, title))
     if len(summaries) > 1:

@@ -1,7 +1,8 @@
 """Trained policies shipped with the package, one folder per task.
 
 ``--checkpoint shipped`` on ``d3grasp-play`` and ``d3grasp-eval`` resolves to the checkpoint of the
-task being run (``resolve_checkpoint``). Each folder holds the rsl-rl checkpoint (``model.pt``), its
+task being run (``resolve_checkpoint``); ``d3grasp-eval --ablation shipped`` to the three checkpoints of
+the paper's ablation table (``shipped_ablation``). Each folder holds the rsl-rl checkpoint (``model.pt``), its
 TorchScript and ONNX exports, the training curves and a model card (``MODEL_CARD.md``) with the exact
 command, iterations, env-steps, wall-clock and hardware.
 """
@@ -10,7 +11,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["BASELINE", "SHIPPED", "SHIPPED_POLICIES", "resolve_checkpoint", "shipped_checkpoint"]
+__all__ = [
+    "BASELINE",
+    "SHIPPED",
+    "SHIPPED_ABLATION",
+    "SHIPPED_POLICIES",
+    "resolve_checkpoint",
+    "shipped_ablation",
+    "shipped_checkpoint",
+]
 
 SHIPPED = "shipped"
 """The ``--checkpoint`` value that selects the shipped policy of the task."""
@@ -20,6 +29,14 @@ BASELINE = "baseline"
 
 # task -> folder under d3grasp/policies/
 SHIPPED_POLICIES: dict[str, str] = {"D3Grasp-DexHand13-Mixed-v0": "mixed_v0"}
+
+# The paper's ablation table under the camera, one recipe and budget each (their model cards):
+# ``d3grasp-eval --ablation shipped``. Task -> folder under d3grasp/policies/.
+SHIPPED_ABLATION: dict[str, str] = {
+    "D3Grasp-DexHand13-Base-v0": "ablation_base",
+    "D3Grasp-DexHand13-BaseTactile-v0": "ablation_basetactile",
+    "D3Grasp-DexHand13-Mixed-v0": "ablation_asymmetric",
+}
 
 _ROOT = Path(__file__).resolve().parent
 
@@ -39,3 +56,12 @@ def shipped_checkpoint(task: str) -> Path:
 def resolve_checkpoint(checkpoint: str, task: str) -> str:
     """``"shipped"`` -> the task's shipped checkpoint path; anything else unchanged."""
     return str(shipped_checkpoint(task)) if checkpoint == SHIPPED else checkpoint
+
+
+def shipped_ablation() -> tuple[str, ...]:
+    """The shipped ablation checkpoints as ``--ablation`` entries (``"TASK=PATH"``);
+    ``FileNotFoundError`` if the package lacks one."""
+    missing = [f for f in SHIPPED_ABLATION.values() if not (_ROOT / f / "model.pt").is_file()]
+    if missing:
+        raise FileNotFoundError(f"the package lacks the shipped ablation checkpoints {missing}")
+    return tuple(f"{task}={_ROOT / folder / 'model.pt'}" for task, folder in SHIPPED_ABLATION.items())

@@ -132,3 +132,16 @@ def test_outcome_and_grasp_type_tables_count_by_hand() -> None:
     assert list(rows)[0] == "held through the pushes" and len(rows) == 3
     by_type = grasp_type_markdown({"baseline": base}).splitlines()[2]
     assert "| 50.0 [" in by_type and "(n=2)" in by_type and "(n=1)" in by_type and "(n=0)" in by_type
+
+
+def test_the_ablation_table_tells_the_baselines_perceptions_apart() -> None:
+    """Under the paper's protocol the ablation table holds the rule twice (camera and oracle): each
+    column head names its perception."""
+    from d3grasp.eval.evaluate import RunSpec, _ablation_header
+
+    rule = RunSpec("baseline", "D3Grasp-DexHand13-Mixed-v0", "baseline")
+    assert _ablation_header(rule, "baseline/camera") == "rule-based baseline, camera"
+    assert _ablation_header(rule, "baseline/oracle") == "rule-based baseline, oracle"
+    assert _ablation_header(rule, "baseline") == "rule-based baseline"
+    base = RunSpec("Base/camera", "D3Grasp-DexHand13-Base-v0", "model_25.pt")
+    assert _ablation_header(base, "Base/camera") == "Base/camera (symmetric; actor: proprioception)"
