@@ -18,10 +18,9 @@ environment. :class:`RuleBasedController` runs it on an environment's sensor rea
 through the same interface as a policy (normalised joint targets), so it runs wherever a policy
 does. It reads the pad sensors directly rather than the observation (a policy's observation may
 leave touch out; the Base ablation's env sets ``rule.stop_on`` "stall", and its rule reads no pad).
-It reads the pads' contacts with
-the object only (``Sensors.pad_force_object``): each finger stops on the object, not on the table
-(measured before: a fingertip pressing the table stopped its finger in about a fifth of the
-failed train-split grasps, with no force on the object at all).
+It reads the pads' contacts with the object only (``Sensors.pad_force_object``): each finger stops
+on the object, not on the table (measured before: a fingertip pressing the table stopped its finger
+in about a fifth of the failed train-split grasps, with no force on the object at all).
 
 ``stop_on="stall"`` is the rule without touch, the closing prior of the paper's Base ablation
 (proprioception only): a joint stops where its drive lags its target by more than ``stall_lag``,
