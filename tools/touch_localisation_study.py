@@ -30,21 +30,6 @@ from pathlib import Path
 
 import numpy as np
 
-GRASP_CONTACT_FORCE = 0.5  # N: a pad touches (the scoring's threshold)
-
-
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices of xyzw quaternions (N, 4)."""
-    x, y, z, w = (q[:, i] for i in range(4))
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
 
 def collect(
     split: str, rounds: int, seed: int, batch: int, limit: int | None = None, perception: str = "camera"
@@ -54,8 +39,13 @@ def collect(
     stream), so a camera record and an oracle record of the same row share the object's pose."""
     import torch
 
+    from d3grasp.authoring.hand import quat_xyzw_to_matrix
     from d3grasp.envs import make_env
+    from d3grasp.envs.config import BaselineConfig
     from d3grasp.eval.evaluate import select_objects
+
+    # A pad "first felt the object" above the force at which the rule stops a joint on it.
+    touch_force = BaselineConfig().force_threshold
 
     _, entries = select_objects("diverse", split)
     ids = [e.id for e in entries][:limit]
@@ -73,7 +63,7 @@ def collect(
             if r:
                 env.reset_worlds(torch.arange(W))
             error = env.centre_correction.double().numpy().copy()
-            rot = _quat_matrix(env.grasp_palm_quat.double().numpy())
+            rot = np.stack([quat_xyzw_to_matrix(q) for q in env.grasp_palm_quat.double().numpy()])
             error_palm = np.einsum("wji,wj->wi", rot, error)  # R^T e: the error in the palm's frame
             first = np.full((W, env.t_pad_force_object.shape[1]), -1.0)
             done = np.zeros(W, dtype=bool)
@@ -83,7 +73,7 @@ def collect(
                 env.step(zero)
                 t = env.episode_length_buf.numpy()
                 force = env.t_pad_force_object.double().numpy()
-                touching = np.linalg.norm(force, axis=-1) > GRASP_CONTACT_FORCE
+                touching = np.linalg.norm(force, axis=-1) > touch_force
                 newly = touching & (first < 0) & (t[:, None] > g0)
                 first[newly] = np.broadcast_to(((t - g0) / 60.0)[:, None], first.shape)[newly]
                 now = ~done & (t >= env.lift_start.numpy())

@@ -125,7 +125,8 @@ def make_train_parser() -> argparse.ArgumentParser:
         choices=("teacher",),
         default=None,
         help="train by DAgger from the privileged teacher instead of PPO (needs a wrist and camera "
-        "perception: --set palm_offset_limit=0.03 --set palm_yaw_limit=0.5 --set perception=camera)",
+        "perception, e.g. --set palm_offset_limit=0.02 --set palm_yaw_limit=0.3 --set perception=camera, "
+        "the teacher's evaluation wrist)",
     )
     p.add_argument(
         "--resume", action="store_true", help="continue from a checkpoint (weights, optimizer, count)"

@@ -36,6 +36,7 @@ from d3grasp.train.runner import D3GraspRunner, EpisodeStats, IterationTiming
 from rsl_rl.models import MLPModel
 from tensordict import TensorDict
 
+from d3grasp.envs.mdp.actions import WRIST_ACTIONS
 from d3grasp.policies.teacher import TEACHER, PoseTeacher
 
 __all__ = ["DaggerRunner", "Rollout", "masked_mse", "sequence_means"]
@@ -219,7 +220,8 @@ class DaggerRunner(D3GraspRunner):
                     if epoch == epochs - 1:
                         losses.append(float(loss.detach()))
                         with torch.no_grad():
-                            err = (means[..., -4:] - part.labels[..., -4:]).abs().mean(-1)
+                            wrist = slice(-WRIST_ACTIONS, None)
+                            err = (means[..., wrist] - part.labels[..., wrist]).abs().mean(-1)
                             m = part.active.float()
                             wrist_errs.append(float((err * m).sum() / m.sum().clamp(min=1.0)))
         return sum(losses) / max(len(losses), 1), sum(wrist_errs) / max(len(wrist_errs), 1)

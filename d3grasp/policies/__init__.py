@@ -1,10 +1,11 @@
-"""Trained policies shipped with the package, one folder per task.
+"""Trained policies shipped with the package, one folder per policy.
 
 ``--checkpoint shipped`` on ``d3grasp-play`` and ``d3grasp-eval`` resolves to the checkpoint of the
-task being run (``resolve_checkpoint``); ``d3grasp-eval --ablation shipped`` to the three checkpoints of
-the paper's ablation table (``shipped_ablation``). Each folder holds the rsl-rl checkpoint (``model.pt``), its
-TorchScript and ONNX exports, the training curves and a model card (``MODEL_CARD.md``) with the exact
-command, iterations, env-steps, wall-clock and hardware.
+task being run (``resolve_checkpoint``); ``d3grasp-eval --ablation shipped`` to the three checkpoints
+of the paper's ablation table (``shipped_ablation``). Each folder holds the rsl-rl checkpoint
+(``model.pt``), its training curves and a model card (``MODEL_CARD.md``) with the exact command,
+iterations, env-steps, wall-clock and hardware; the task's default policy also its TorchScript and
+ONNX exports.
 """
 
 from __future__ import annotations
