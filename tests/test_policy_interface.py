@@ -106,5 +106,32 @@ def test_the_shipped_ablation_checkpoints_fit_their_tasks() -> None:
         assert data["infos"]["task"] == spec.task
         built = apply_overrides(get_task(spec.task).make_cfg(), interface_overrides(data))
         _check(data["infos"], built, str(spec.checkpoint))
+        # The prior it was trained on comes back with the build, whatever the task's default.
+        assert built.rule.stop_on == ("stall" if spec.label == "Base" else "touch")
     assert get_task("D3Grasp-DexHand13-Base-v0").make_cfg().rule.stop_on == "stall"
     assert get_task("D3Grasp-DexHand13-BaseTactile-v0").make_cfg().rule.stop_on == "touch"
+
+
+def test_the_prior_is_recorded_and_another_refused() -> None:
+    """A residual's zero action is the rule: Base's stall-prior checkpoint on the touch rule would read
+    the pads through its prior, so the record refuses it; a record without the prior (every checkpoint
+    from before it) was trained on the touch rule."""
+    from d3grasp.policies import _ROOT, SHIPPED_ABLATION
+
+    base_task = "D3Grasp-DexHand13-Base-v0"
+    infos = read_checkpoint(_ROOT / SHIPPED_ABLATION[base_task] / "model.pt")["infos"]
+    assert infos["policy_interface"]["rule"] == {"stop_on": "stall"}
+    touch = apply_overrides(get_task(base_task).make_cfg(), interface_overrides({"infos": infos}))
+    touch.rule.stop_on = "touch"
+    with pytest.raises(CheckpointError) as err:
+        _check(infos, touch)
+    msg = str(err.value)
+    assert "\n" not in msg and "--set rule.stop_on=stall" in msg and "another rule" in msg
+    cfg = get_task(DEFAULT_TASK).make_cfg()
+    recorded = policy_interface(cfg)
+    assert recorded["rule"] == {"stop_on": "touch"}
+    del recorded["rule"]
+    _check(_infos(recorded), cfg)
+    cfg.rule.stop_on = "stall"
+    with pytest.raises(CheckpointError, match=r"rule\.stop_on='touch' \(environment: 'stall'\)"):
+        _check(_infos(recorded), cfg)

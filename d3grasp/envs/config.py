@@ -362,6 +362,13 @@ loading one into an environment with other values is refused rather than silentl
 # policy sees, so they are recorded and checked like the action settings above.
 OBSERVATION_INTERFACE = "obs"
 
+# The key that holds the prior's kind (``BaselineConfig.stop_on``): a residual's zero action is the
+# rule, so a policy trained on the stall prior (Base, which reads no touch) run on the touch rule would
+# read the pads through its prior. The rule's tuning (squeeze depths, speeds) is not recorded: shipped
+# checkpoints are evaluated with today's tuning, which has been re-measured under them (docs/design.md).
+RULE_INTERFACE = "rule"
+RULE_INTERFACE_FIELDS: tuple[str, ...] = ("stop_on",)
+
 # What a checkpoint recorded before a POLICY_INTERFACE setting existed: the behaviour it was trained with.
 # The observation settings are those of the checkpoints from before their record (the shipped mixed_v0
 # among them): the defaults of then, written out rather than read from ObservationConfig, so that a
@@ -385,10 +392,17 @@ POLICY_INTERFACE_BEFORE: dict[str, object] = {
         "log_youngs_per_unit": 6.0,
         "clock_period": 4.5,
     },
+    # Every checkpoint from before this record was trained on the touch rule but the Base ablation's,
+    # whose shipped file was given its record (trained with the Base task's stop_on="stall").
+    RULE_INTERFACE: {"stop_on": "touch"},
 }
 
 
 def policy_interface(cfg: GraspEnvConfig) -> dict[str, object]:
-    """The ``POLICY_INTERFACE`` values of ``cfg`` and its observation settings under
-    ``OBSERVATION_INTERFACE`` (what a checkpoint records and is checked against)."""
-    return {key: getattr(cfg, key) for key in POLICY_INTERFACE} | {OBSERVATION_INTERFACE: asdict(cfg.obs)}
+    """The ``POLICY_INTERFACE`` values of ``cfg``, its observation settings under
+    ``OBSERVATION_INTERFACE`` and its prior's kind under ``RULE_INTERFACE`` (what a checkpoint records
+    and is checked against)."""
+    return {key: getattr(cfg, key) for key in POLICY_INTERFACE} | {
+        OBSERVATION_INTERFACE: asdict(cfg.obs),
+        RULE_INTERFACE: {key: getattr(cfg.rule, key) for key in RULE_INTERFACE_FIELDS},
+    }

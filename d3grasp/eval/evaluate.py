@@ -31,7 +31,7 @@ from typing import Any
 from d3grasp.authoring.manifest import AssetEntry, read_manifest
 from d3grasp.envs import close_env
 from d3grasp.envs.config import GRASP_TYPES
-from d3grasp.envs.registry import DEFAULT_TASK, TASKS, get_task
+from d3grasp.envs.registry import DEFAULT_TASK, TASKS, apply_overrides, get_task
 from d3grasp.eval.metrics import (
     COLUMNS,
     GROUPS,
@@ -519,9 +519,16 @@ def _spec_of(result: EvalResult, label: str) -> RunSpec:
     return result.specs.get(label) or RunSpec(label, s.task, checkpoint)
 
 
+def _baseline_name(task: str, overrides: Mapping[str, Any]) -> str:
+    """What ``--checkpoint baseline`` ran on ``task``: the paper's touch rule, or the stall rule of the
+    Base task (``rule.stop_on="stall"``: the Base ablation's prior, which reads no pad)."""
+    cfg = apply_overrides(get_task(task).make_cfg(), dict(overrides))
+    return "rule-based baseline" if cfg.rule.stop_on == "touch" else f"{cfg.rule.stop_on} rule (no touch)"
+
+
 def _title(spec: RunSpec, s: EvalSettings) -> str:
     if spec.checkpoint == BASELINE:
-        who = "rule-based baseline"
+        who = _baseline_name(spec.task, s.env_overrides)
     else:
         ckpt = Path(spec.checkpoint)
         who = f"{'policy' if spec.label == 'policy' else spec.label} {ckpt.name}"
@@ -534,13 +541,14 @@ def _title(spec: RunSpec, s: EvalSettings) -> str:
     return f"{who} on {spec.task}: {_conditions(s)}"
 
 
-def _ablation_header(spec: RunSpec, label: str) -> str:
+def _ablation_header(spec: RunSpec, label: str, overrides: Mapping[str, Any]) -> str:
     """The ablation table's column head of run ``label``: which senses the actor reads and whether the
     critic is asymmetric (reads the privileged group), as in the paper's ablation table; the baseline's
     with its perception where the label names one (``baseline/camera`` beside ``baseline/oracle``)."""
     if spec.checkpoint == BASELINE:
         _, _, perception = label.partition("/")
-        return f"rule-based baseline, {perception}" if perception else "rule-based baseline"
+        name = _baseline_name(spec.task, overrides)
+        return f"{name}, {perception}" if perception else name
     task = get_task(spec.task)
     actor = "proprioception + tactile" if task.make_cfg().tactile_obs else "proprioception"
     if "privileged" in task.critic_groups:
@@ -594,7 +602,8 @@ def write_outputs(
     specs = {label: _spec_of(result, label) for label in result.runs}
     tables = []
     if result.settings.ablation:
-        headers = {label: _ablation_header(spec, label) for label, spec in specs.items()}
+        overrides = result.settings.env_overrides
+        headers = {label: _ablation_header(spec, label, overrides) for label, spec in specs.items()}
         title = f"Ablation, every episode: {_conditions(result.settings)}"
         tables.append(ablation_markdown(summaries, headers, title))
     if len(summaries) > 1:

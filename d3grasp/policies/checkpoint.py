@@ -85,19 +85,26 @@ def interface_overrides(data: dict[str, Any]) -> dict[str, Any]:
 def as_trained(interface: dict[str, Any], known_only: bool = False) -> dict[str, Any]:
     """A checkpoint's recorded ``policy_interface`` completed with ``POLICY_INTERFACE_BEFORE``: a
     setting it does not record did not exist yet, so it was trained with the behaviour from before
-    it (observation settings field by field). ``known_only``: of those assumed values, only the
-    observation fields this version's ``ObservationConfig`` has (they become ``make_env`` overrides)."""
+    it (observation and rule settings field by field). ``known_only``: of those assumed values, only
+    the fields this version's config sections have (they become ``make_env`` overrides)."""
     from dataclasses import fields
 
-    from d3grasp.envs.config import OBSERVATION_INTERFACE, POLICY_INTERFACE_BEFORE, ObservationConfig
+    from d3grasp.envs.config import (
+        OBSERVATION_INTERFACE,
+        POLICY_INTERFACE_BEFORE,
+        RULE_INTERFACE,
+        BaselineConfig,
+        ObservationConfig,
+    )
 
-    before_obs = POLICY_INTERFACE_BEFORE[OBSERVATION_INTERFACE]
-    assert isinstance(before_obs, dict)
-    if known_only:
-        known = {f.name for f in fields(ObservationConfig)}
-        before_obs = {k: v for k, v in before_obs.items() if k in known}
     out = {**POLICY_INTERFACE_BEFORE, **interface}
-    out[OBSERVATION_INTERFACE] = {**before_obs, **(interface.get(OBSERVATION_INTERFACE) or {})}
+    for key, section in ((OBSERVATION_INTERFACE, ObservationConfig), (RULE_INTERFACE, BaselineConfig)):
+        before = POLICY_INTERFACE_BEFORE[key]
+        assert isinstance(before, dict)
+        if known_only:
+            known = {f.name for f in fields(section)}
+            before = {k: v for k, v in before.items() if k in known}
+        out[key] = {**before, **(interface.get(key) or {})}
     return out
 
 
@@ -161,7 +168,7 @@ def _check_policy_interface(theirs: dict[str, Any] | None, mine: dict[str, Any] 
     """Refuse a checkpoint trained with other action-to-target settings (same sizes, other meaning)."""
     if not theirs or mine is None:
         return  # checkpoints from before the record, or an env without a GraspEnvConfig
-    from d3grasp.envs.config import OBSERVATION_INTERFACE
+    from d3grasp.envs.config import OBSERVATION_INTERFACE, RULE_INTERFACE
 
     # A setting the checkpoint does not record did not exist yet: it was trained with the old behaviour.
     # One that this environment does not have is not compared (a newer checkpoint's setting).
@@ -171,9 +178,11 @@ def _check_policy_interface(theirs: dict[str, Any] | None, mine: dict[str, Any] 
         given = ", ".join(f"{k}={a!r} (environment: {b!r})" for k, (a, b) in diff.items())
         fix = " ".join(f"--set {k}={a}" for k, (a, _) in diff.items())
         seen = any(k.startswith(f"{OBSERVATION_INTERFACE}.") for k in diff)
-        acted = any(not k.startswith(f"{OBSERVATION_INTERFACE}.") for k in diff)
+        prior = any(k.startswith(f"{RULE_INTERFACE}.") for k in diff)
+        acted = any(not k.startswith((f"{OBSERVATION_INTERFACE}.", f"{RULE_INTERFACE}.")) for k in diff)
         what = " and ".join(
             (["its actions mean something else"] if acted else [])
+            + (["its zero action would be another rule"] if prior else [])
             + (["it would see other observations"] if seen else [])
         )
         raise CheckpointError(

@@ -140,8 +140,13 @@ def test_the_ablation_table_tells_the_baselines_perceptions_apart() -> None:
     from d3grasp.eval.evaluate import RunSpec, _ablation_header
 
     rule = RunSpec("baseline", "D3Grasp-DexHand13-Mixed-v0", "baseline")
-    assert _ablation_header(rule, "baseline/camera") == "rule-based baseline, camera"
-    assert _ablation_header(rule, "baseline/oracle") == "rule-based baseline, oracle"
-    assert _ablation_header(rule, "baseline") == "rule-based baseline"
+    assert _ablation_header(rule, "baseline/camera", {}) == "rule-based baseline, camera"
+    assert _ablation_header(rule, "baseline/oracle", {}) == "rule-based baseline, oracle"
+    assert _ablation_header(rule, "baseline", {}) == "rule-based baseline"
     base = RunSpec("Base/camera", "D3Grasp-DexHand13-Base-v0", "model_25.pt")
-    assert _ablation_header(base, "Base/camera") == "Base/camera (symmetric; actor: proprioception)"
+    assert _ablation_header(base, "Base/camera", {}) == "Base/camera (symmetric; actor: proprioception)"
+    # The Base task's --checkpoint baseline runs its stall prior, which is not the paper's touch rule.
+    stall = RunSpec("baseline", "D3Grasp-DexHand13-Base-v0", "baseline")
+    assert _ablation_header(stall, "baseline/camera", {}) == "stall rule (no touch), camera"
+    assert _ablation_header(rule, "baseline", {"rule": {"stop_on": "stall"}}) == "stall rule (no touch)"
+    assert _ablation_header(stall, "baseline", {"rule__stop_on": "touch"}) == "rule-based baseline"
