@@ -129,7 +129,8 @@ class ScoreState:
     steps of touch before it (int64), s_grasp, the pads touching at the lift's start and at the hold's
     (W, P), the highest rise during the lift, whether s_lift and s_disturb still hold, the push's
     reference offset from the palm, the most the object moved in a push, the first failure code
-    (int32), the count of non-finite states met (1,) int32, and the step's ``done`` and ``time_out``."""
+    (int32), the count of non-finite states met (1,) int32, and whether the step ended the episode
+    (``done``; every end is a true terminal for PPO: the horizon is fixed and the clock observed)."""
 
     lift_start: wp.array
     touch_steps: wp.array
@@ -144,7 +145,6 @@ class ScoreState:
     failure: wp.array
     nonfinite_count: wp.array
     done: wp.array
-    time_out: wp.array
 
     @classmethod
     def allocate(
@@ -166,7 +166,6 @@ class ScoreState:
             failure=wp.zeros(W, dtype=wp.int32, device=dev),
             nonfinite_count=wp.zeros(1, dtype=wp.int32, device=dev),
             done=wp.zeros(W, dtype=wp.bool, device=dev),
-            time_out=wp.zeros(W, dtype=wp.bool, device=dev),
         )
 
     def numpy(self) -> dict[str, np.ndarray]:
@@ -221,7 +220,6 @@ def _score_kernel(
     failure: wp.array(dtype=wp.int32),
     nonfinite_count: wp.array(dtype=wp.int32),
     done: wp.array(dtype=wp.bool),
-    time_out: wp.array(dtype=wp.bool),
 ):
     w = wp.tid()
     t = int(t_step[w])
@@ -313,7 +311,6 @@ def _score_kernel(
         done[w] = nonfinite or ended
     else:
         done[w] = pushed_off or dropped or blowup or nonfinite or ended
-    time_out[w] = ended and not nonfinite
 
 
 def score_step(prm: ScoreParams, sched: ScoreSchedule, inp: ScoreInputs, state: ScoreState) -> None:
@@ -407,4 +404,3 @@ def score_step_numpy(
     _first_failure_numpy(s["failure"], blowup, BLOWUP)
     _first_failure_numpy(s["failure"], pushed_off, PUSHED_OFF)
     s["done"] = (nonfinite | ended) if prm.eval_mode else (pushed_off | dropped | blowup | nonfinite | ended)
-    s["time_out"] = ended & ~nonfinite

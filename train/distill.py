@@ -39,6 +39,9 @@ from tensordict import TensorDict
 from d3grasp.envs.mdp.actions import WRIST_ACTIONS
 from d3grasp.policies.teacher import TEACHER, PoseTeacher
 
+# The checkpoint's entry for the student's optimiser state (PPO's own stays under rsl-rl's key).
+STUDENT_OPTIMIZER_KEY = "student_optimizer_state_dict"
+
 __all__ = ["DaggerRunner", "Rollout", "masked_mse", "sequence_means"]
 
 
@@ -111,6 +114,17 @@ class DaggerRunner(D3GraspRunner):
         )
         self.buffer: collections.deque[Rollout] = collections.deque(maxlen=int(dcfg["buffer_rollouts"]))
         self.teacher_stats = EpisodeStats()
+
+    def extra_checkpoint_state(self) -> dict[str, Any]:
+        """The student's Adam state, so a resumed DAgger run continues the same optimiser."""
+        return {STUDENT_OPTIMIZER_KEY: self.student_optimizer.state_dict()}
+
+    def restore_checkpoint_state(self, data: dict[str, Any], load_cfg: dict[str, Any]) -> None:
+        """The student's Adam state where the checkpoint has one; a checkpoint written by PPO, or by
+        DAgger before it saved the state, leaves a fresh Adam."""
+        state = data.get(STUDENT_OPTIMIZER_KEY)
+        if state is not None and load_cfg.get("optimizer"):
+            self.student_optimizer.load_state_dict(state)
 
     def beta(self, iteration: int) -> float:
         """The teacher's share of the episodes at ``iteration``: 1 falling linearly to 0."""

@@ -547,12 +547,20 @@ class D3GraspRunner(OnPolicyRunner):
             infos["policy_interface"] = interface
         return infos
 
+    def extra_checkpoint_state(self) -> dict[str, Any]:
+        """What a subclass's learning loop adds to each checkpoint beside rsl-rl's entries (none here)."""
+        return {}
+
+    def restore_checkpoint_state(self, data: dict[str, Any], load_cfg: dict[str, Any]) -> None:
+        """Restore what ``extra_checkpoint_state`` saved (nothing here)."""
+
     def save(self, path: str, infos: dict | None = None) -> None:
         """Atomically save models, optimizer, completed-iteration count and ``checkpoint_infos()``."""
         data = self.alg.save()
         data["iter"] = self.current_learning_iteration
         data["progress"] = asdict(self.progress)
         data["infos"] = {**self.checkpoint_infos(), **(infos or {})}
+        data.update(self.extra_checkpoint_state())
         atomic_torch_save(data, path)
         self.logger.save_model(path, self.current_learning_iteration)
 
@@ -590,6 +598,7 @@ class D3GraspRunner(OnPolicyRunner):
             raise CheckpointError(
                 f"checkpoint {path} does not match the configured networks: {first}"
             ) from None
+        self.restore_checkpoint_state(data, load_cfg)
         if load_cfg.get("iteration"):
             self.current_learning_iteration = int(data["iter"])
             self.progress = TrainingProgress(**data.get("progress", {}))

@@ -78,7 +78,7 @@ class GraspEnv:
         # and the config asks for it; the planner itself sets a per-world override to score candidates.
         self.grasp_plan = load_grasp_plan(self.manifest_path) if cfg.grasp_source == "file" else None
         if self.grasp_plan:
-            _warn_changed_settings(self.grasp_plan, self.world_entries, environment_record(cfg.sim))
+            _warn_changed_settings(self.grasp_plan, self.world_entries, environment_record(cfg.sim, cfg.rule))
         self.grasp_override: list | None = None
         self._build()
         self._allocate_buffers()
@@ -407,7 +407,7 @@ class GraspEnv:
 
         # The reward's launches gather the state the scoring reads too (step, object, finiteness).
         rew = rewards.compute_rewards(self)
-        done, _ = terminations.score(self)
+        done = terminations.score(self)
         self.episode_return += rew
 
         # No step is a time-out for PPO: the episode's horizon is fixed and its clock observed, so

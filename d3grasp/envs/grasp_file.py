@@ -86,12 +86,11 @@ class StoredGrasps:
         return best[2]
 
 
-def environment_record(sim: Any) -> dict[str, Any]:
+def environment_record(sim: Any, rule: Any) -> dict[str, Any]:
     """What a grasp's trials depend on besides the planner's own settings and the asset: the
-    simulation settings (``SimConfig``) and the rule's (``BaselineConfig``), as JSON values."""
-    from d3grasp.envs.baseline import BaselineConfig
-
-    return json.loads(json.dumps({"sim": asdict(sim), "rule": asdict(BaselineConfig())}))
+    simulation settings (``SimConfig``) and the rule's (``BaselineConfig``: the environment's own,
+    ``GraspEnvConfig.rule``), as JSON values."""
+    return json.loads(json.dumps({"sim": asdict(sim), "rule": asdict(rule)}))
 
 
 def changed_settings(recorded: dict[str, Any] | None, current: dict[str, Any]) -> list[str]:

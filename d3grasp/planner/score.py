@@ -38,7 +38,8 @@ def trial_environment(cfg: ScoringConfig) -> dict[str, Any]:
     from d3grasp.envs.grasp_file import environment_record
     from d3grasp.envs.registry import get_task
 
-    return environment_record(get_task(cfg.task).make_cfg().sim)
+    env_cfg = get_task(cfg.task).make_cfg()
+    return environment_record(env_cfg.sim, env_cfg.rule)
 
 
 @dataclass(frozen=True)

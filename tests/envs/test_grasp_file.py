@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from d3grasp.authoring.manifest import read_manifest
-from d3grasp.envs.config import SimConfig
+from d3grasp.envs.config import BaselineConfig, SimConfig
 from d3grasp.envs.grasp_file import (
     GraspFileError,
     StoredGrasps,
@@ -138,8 +138,16 @@ def test_changed_settings_name_what_differs() -> None:
     assert changed_settings(current, current) == []
     old = {"sim": {"iterations": 5, "soft_iterations": 5}, "rule": {}}  # a rule setting not yet recorded
     assert changed_settings(old, current) == ["sim.soft_iterations 5 -> 20"]
-    rec = environment_record(SimConfig())
+    rec = environment_record(SimConfig(), BaselineConfig())
     assert rec["sim"]["substeps"] == SimConfig().substeps and "squeeze_deformable" in rec["rule"]
+    # The record is the environment's own rule, not the default one: the Base task's trials run the
+    # stall rule, and grasps planned under it would be replanned under the touch rule.
+    from d3grasp.planner.score import ScoringConfig, trial_environment
+
+    assert trial_environment(ScoringConfig())["rule"]["stop_on"] == "touch"
+    base = trial_environment(ScoringConfig(task="D3Grasp-DexHand13-Base-v0"))
+    assert base["rule"]["stop_on"] == "stall"
+    assert changed_settings(base, rec) == ["rule.stop_on stall -> touch"]
 
 
 def test_grasps_planned_under_other_settings_are_used_with_a_warning(tmp_path: Path) -> None:
@@ -147,7 +155,7 @@ def test_grasps_planned_under_other_settings_are_used_with_a_warning(tmp_path: P
 
     manifest = _library(tmp_path)
     data = _write_grasps(manifest, {"top": 2.0})
-    planned = environment_record(SimConfig())
+    planned = environment_record(SimConfig(), BaselineConfig())
     planned["sim"]["iterations"] += 3
     data["objects"][BOX]["environment"] = planned
     grasp_file_path(manifest).write_text(json.dumps(data))
@@ -168,6 +176,6 @@ def test_the_shipped_library_has_a_current_plan_for_every_object() -> None:
     assert sorted(set(ids) - set(plan)) == []
     # Objects whose plan records its settings (the soft ones since 2026-12-04) were planned under
     # today's: a change of SimConfig or BaselineConfig needs them replanned.
-    current = environment_record(SimConfig())
+    current = environment_record(SimConfig(), BaselineConfig())
     stale = {i: changed_settings(s.environment, current) for i, s in plan.items()}
     assert {i: c for i, c in stale.items() if c} == {}

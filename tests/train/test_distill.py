@@ -10,7 +10,7 @@ import pytest
 import torch
 from d3grasp.train import train as train_mod
 from d3grasp.train.configs import make_train_cfg
-from d3grasp.train.distill import masked_mse, sequence_means
+from d3grasp.train.distill import STUDENT_OPTIMIZER_KEY, masked_mse, sequence_means
 from d3grasp.train.runner import read_checkpoint
 from rsl_rl.models import RNNModel
 from tensordict import TensorDict
@@ -79,6 +79,20 @@ def test_distillation_trains_a_student_whose_checkpoint_carries_the_wrist(tmp_pa
     interface = data["infos"]["policy_interface"]
     assert interface["palm_offset_limit"] == 0.03 and interface["palm_yaw_limit"] == 0.5
     assert data["infos"]["num_actions"] == 4 + 4
+    # The student's Adam state is saved and continued on resume. Its step count by hand: an
+    # iteration fits `epochs` passes over the buffered rollouts (1, then 2) in min(mini_batches, 2
+    # worlds) mini-batches; a resumed run starts with an empty buffer (1 rollout).
+    dcfg = make_train_cfg(DEFAULT_TASK)["distillation"]
+    per_rollout = dcfg["epochs"] * min(dcfg["mini_batches"], 2)
+    steps = {int(v["step"]) for v in data[STUDENT_OPTIMIZER_KEY]["state"].values()}
+    assert steps == {per_rollout * (1 + 2)}
+    resume = argv[:-6] + argv[-6:] + ["--resume", "--checkpoint", str(run / "model_2.pt")]
+    resume[resume.index("--max_iterations") + 1] = "1"
+    assert train_mod.main(resume + ["--run_name", "resumed"]) == 0
+    (resumed,) = sorted(exp.glob("*resumed"))
+    after = read_checkpoint(resumed / "model_3.pt")
+    steps = {int(v["step"]) for v in after[STUDENT_OPTIMIZER_KEY]["state"].values()}
+    assert steps == {per_rollout * (1 + 2 + 1)}
     # No wrist: the teacher cannot act, one line.
     bad = argv[:-6] + ["--run_name", "nowrist"]
     assert train_mod.main(bad) == 2

@@ -645,6 +645,7 @@ def test_checkpoint_records_and_checks_how_actions_become_targets(tmp_path: Path
         "palm_offset_rate": 0.02,
         "palm_yaw_rate": 0.3,
         "obs": asdict(env.cfg.obs),  # the observation scales (tests/test_policy_interface.py)
+        "rule": {"stop_on": "touch"},  # the prior: the zero action is the touch rule
     }
     runner.load(str(ckpt), load_cfg={"actor": True})  # same settings: loads
     # Evaluation builds its environments as the checkpoint records, --set going over it.

@@ -85,7 +85,6 @@ _STATE_VIEWS = {
     "failure": "failure_code",  # the first failure cause (FAILURES[c - 1]; 0: none)
     "nonfinite_count": "t_nonfinite_count",
     "done": "t_done",
-    "time_out": "t_time_out",
 }
 
 
@@ -148,10 +147,11 @@ def allocate(env: GraspEnv) -> None:
     )
 
 
-def score(env: GraspEnv) -> tuple[torch.Tensor, torch.Tensor]:
-    """Update every world's success metrics after the step; return (done, time_out). The step count,
-    the object's position and whether the state is finite (``env.t_score_in["t"]``, ``["obj_pos"]``,
-    ``["finite"]``) are written before, by ``rewards.compute_rewards`` (its gather reads them too)."""
+def score(env: GraspEnv) -> torch.Tensor:
+    """Update every world's success metrics after the step; return which worlds' episodes ended. The
+    step count, the object's position and whether the state is finite (``env.t_score_in["t"]``,
+    ``["obj_pos"]``, ``["finite"]``) are written before, by ``rewards.compute_rewards`` (its gather
+    reads them too)."""
     i = env.t_score_in
     if env.residual_base is not None:
         # The rule runs inside the env (residual action modes): a hand closed as far as the object
@@ -161,7 +161,7 @@ def score(env: GraspEnv) -> tuple[torch.Tensor, torch.Tensor]:
     sensors = env.sensors
     if sensors.strain_layout is not None:
         env.max_strain = torch.maximum(env.max_strain, sensors.soft_scalar(sensors.strain_buf.object_eps))
-    return env.t_done.clone(), env.t_time_out.clone()
+    return env.t_done.clone()
 
 
 def _pad_list(touching: np.ndarray) -> list[str]:
