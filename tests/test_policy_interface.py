@@ -9,7 +9,13 @@ from typing import Any
 
 import pytest
 
-from d3grasp.envs.config import POLICY_INTERFACE_BEFORE, GraspEnvConfig, ObservationConfig, policy_interface
+from d3grasp.envs.config import (
+    POLICY_INTERFACE_BEFORE,
+    BaselineConfig,
+    GraspEnvConfig,
+    ObservationConfig,
+    policy_interface,
+)
 from d3grasp.envs.registry import DEFAULT_TASK, apply_overrides, get_task
 from d3grasp.policies.checkpoint import CheckpointError, check_fits, interface_overrides, read_checkpoint
 
@@ -69,6 +75,7 @@ def test_the_values_of_before_are_todays_defaults() -> None:
     """Written out in config.py so that a later change of a default refuses the old checkpoints; the
     day the record began they are the defaults (change this test with the default, not the record)."""
     assert POLICY_INTERFACE_BEFORE["obs"] == asdict(ObservationConfig())
+    assert POLICY_INTERFACE_BEFORE["rule"] == {"stop_on": BaselineConfig().stop_on}
 
 
 def test_shipped_checkpoint_predates_the_record_and_still_fits() -> None:

@@ -125,6 +125,10 @@ class DaggerRunner(D3GraspRunner):
         state = data.get(STUDENT_OPTIMIZER_KEY)
         if state is not None and load_cfg.get("optimizer"):
             self.student_optimizer.load_state_dict(state)
+            # The moments carry over; the learning rate is this run's (load_state_dict restores the
+            # saved one, which would silently override distillation.learning_rate).
+            for group in self.student_optimizer.param_groups:
+                group["lr"] = float(self.cfg["distillation"]["learning_rate"])
 
     def beta(self, iteration: int) -> float:
         """The teacher's share of the episodes at ``iteration``: 1 falling linearly to 0."""

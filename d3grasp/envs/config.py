@@ -392,8 +392,10 @@ POLICY_INTERFACE_BEFORE: dict[str, object] = {
         "log_youngs_per_unit": 6.0,
         "clock_period": 4.5,
     },
-    # Every checkpoint from before this record was trained on the touch rule but the Base ablation's,
-    # whose shipped file was given its record (trained with the Base task's stop_on="stall").
+    # Every checkpoint from before this record was trained on the touch rule except the Base task's
+    # written from c18d3ec (2026-12-06, when the Base task took stop_on="stall") to e893d0d: the
+    # shipped one was given its record; another of those needs the same record written into its
+    # infos (docs/training.md), or it is refused on the Base task and evaluated on the touch rule.
     RULE_INTERFACE: {"stop_on": "touch"},
 }
 

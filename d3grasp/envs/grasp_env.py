@@ -36,7 +36,7 @@ from d3grasp.authoring.manifest import resolve_asset_path
 from d3grasp.dexhand13 import ABDUCTION_JOINTS, NUM_FINGER_JOINTS, NUM_FINGERS
 from d3grasp.envs.baseline import RuleBasedController, rest_targets
 from d3grasp.envs.config import ACTION_MODES, CLOSING_PRIORS, GRASP_SOURCES, PERCEPTION_MODES, GraspEnvConfig
-from d3grasp.envs.grasp_file import changed_settings, environment_record, load_grasp_plan
+from d3grasp.envs.grasp_file import changed_settings, environment_record, load_grasp_plan, without_prior
 from d3grasp.envs.mdp import actions as mdp_actions
 from d3grasp.envs.mdp import events, observations, rewards, terminations
 from d3grasp.envs.physics import Physics
@@ -78,7 +78,8 @@ class GraspEnv:
         # and the config asks for it; the planner itself sets a per-world override to score candidates.
         self.grasp_plan = load_grasp_plan(self.manifest_path) if cfg.grasp_source == "file" else None
         if self.grasp_plan:
-            _warn_changed_settings(self.grasp_plan, self.world_entries, environment_record(cfg.sim, cfg.rule))
+            current = without_prior(environment_record(cfg.sim, cfg.rule))
+            _warn_changed_settings(self.grasp_plan, self.world_entries, current)
         self.grasp_override: list | None = None
         self._build()
         self._allocate_buffers()

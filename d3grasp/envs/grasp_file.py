@@ -93,6 +93,18 @@ def environment_record(sim: Any, rule: Any) -> dict[str, Any]:
     return json.loads(json.dumps({"sim": asdict(sim), "rule": asdict(rule)}))
 
 
+# The rule's settings that choose a residual policy's prior rather than how a grasp closes on touch:
+# every task runs on the library's grasps, planned under the touch rule, so an environment on the
+# Base task's stall prior uses them as planned (its prior is the ablation's point, not a changed setting).
+PRIOR_SETTINGS: tuple[str, ...] = ("stop_on", "stall_lag")
+
+
+def without_prior(record: dict[str, Any]) -> dict[str, Any]:
+    """An :func:`environment_record` without the rule's ``PRIOR_SETTINGS``."""
+    rule = {k: v for k, v in record.get("rule", {}).items() if k not in PRIOR_SETTINGS}
+    return {**record, "rule": rule}
+
+
 def changed_settings(recorded: dict[str, Any] | None, current: dict[str, Any]) -> list[str]:
     """The settings of ``current`` that ``recorded`` (an :func:`environment_record`) holds with
     another value, as ``"sim.soft_iterations 5 -> 20"``. A setting the record lacks is not

@@ -137,7 +137,8 @@ def check_fits(
     models: tuple[str, ...],
 ) -> None:
     """Raise ``CheckpointError`` if a checkpoint's ``models`` read observations of other sizes, act
-    with another action count, or were trained with other action-to-target settings.
+    with another action count, or were trained with other action-to-target, observation-scale or
+    prior (``rule.stop_on``) settings.
 
     ``obs_sizes``, ``obs_groups``, ``num_actions``, ``policy_interface`` and ``task`` describe the
     environment it is loaded into; a checkpoint without the record (a foreign rsl-rl one) is left to
@@ -165,7 +166,8 @@ def check_fits(
 
 
 def _check_policy_interface(theirs: dict[str, Any] | None, mine: dict[str, Any] | None, path: str) -> None:
-    """Refuse a checkpoint trained with other action-to-target settings (same sizes, other meaning)."""
+    """Refuse a checkpoint trained with other action-to-target settings, observation scales or prior
+    (same sizes, other meaning)."""
     if not theirs or mine is None:
         return  # checkpoints from before the record, or an env without a GraspEnvConfig
     from d3grasp.envs.config import OBSERVATION_INTERFACE, RULE_INTERFACE

@@ -21,6 +21,7 @@ from d3grasp.envs.grasp_file import (
     environment_record,
     grasp_file_path,
     load_grasp_plan,
+    without_prior,
 )
 from d3grasp.envs.grasps import object_grasp
 from d3grasp.paths import default_manifest
@@ -148,6 +149,11 @@ def test_changed_settings_name_what_differs() -> None:
     base = trial_environment(ScoringConfig(task="D3Grasp-DexHand13-Base-v0"))
     assert base["rule"]["stop_on"] == "stall"
     assert changed_settings(base, rec) == ["rule.stop_on stall -> touch"]
+    # An environment on the stall prior uses grasps planned under the touch rule without a warning:
+    # the prior is the Base task's choice, the grasps are every task's.
+    assert changed_settings(rec, without_prior(base)) == []
+    base["rule"]["squeeze"] = 0.25
+    assert changed_settings(rec, without_prior(base)) == ["rule.squeeze 0.1 -> 0.25"]
 
 
 def test_grasps_planned_under_other_settings_are_used_with_a_warning(tmp_path: Path) -> None:

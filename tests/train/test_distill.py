@@ -86,13 +86,16 @@ def test_distillation_trains_a_student_whose_checkpoint_carries_the_wrist(tmp_pa
     per_rollout = dcfg["epochs"] * min(dcfg["mini_batches"], 2)
     steps = {int(v["step"]) for v in data[STUDENT_OPTIMIZER_KEY]["state"].values()}
     assert steps == {per_rollout * (1 + 2)}
-    resume = argv[:-6] + argv[-6:] + ["--resume", "--checkpoint", str(run / "model_2.pt")]
+    resume = argv + ["--resume", "--checkpoint", str(run / "model_2.pt")]
     resume[resume.index("--max_iterations") + 1] = "1"
-    assert train_mod.main(resume + ["--run_name", "resumed"]) == 0
+    lr = dcfg["learning_rate"] / 2  # a resumed run's own learning rate, not the saved one
+    assert (
+        train_mod.main(resume + ["--run_name", "resumed", "--agent", f"distillation.learning_rate={lr}"]) == 0
+    )
     (resumed,) = sorted(exp.glob("*resumed"))
-    after = read_checkpoint(resumed / "model_3.pt")
-    steps = {int(v["step"]) for v in after[STUDENT_OPTIMIZER_KEY]["state"].values()}
-    assert steps == {per_rollout * (1 + 2 + 1)}
+    after = read_checkpoint(resumed / "model_3.pt")[STUDENT_OPTIMIZER_KEY]
+    assert {int(v["step"]) for v in after["state"].values()} == {per_rollout * (1 + 2 + 1)}
+    assert [g["lr"] for g in after["param_groups"]] == [lr]
     # No wrist: the teacher cannot act, one line.
     bad = argv[:-6] + ["--run_name", "nowrist"]
     assert train_mod.main(bad) == 2
