@@ -173,6 +173,11 @@ pads (the paper's baseline); ``stall``: the joints' own tracking lag, and the li
 closing joint has stalled: the Base ablation's prior, which reads no touch anywhere."""
 
 
+PRIOR_SETTINGS: tuple[str, ...] = ("stop_on", "stall_lag")
+"""The ``BaselineConfig`` fields that choose the closing prior (``CLOSING_PRIORS``) rather than tune how
+a grasp closes; a checkpoint records the kind alone (``RULE_INTERFACE_FIELDS``)."""
+
+
 @dataclass
 class BaselineConfig:
     """The rule-based baseline's settings (``d3grasp.envs.baseline``): also the prior every residual

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from d3grasp.envs.config import PRIOR_SETTINGS
 from d3grasp.envs.grasps import ObjectGrasp
 
 GRASP_FILE_NAME = "grasps.json"
@@ -93,14 +94,10 @@ def environment_record(sim: Any, rule: Any) -> dict[str, Any]:
     return json.loads(json.dumps({"sim": asdict(sim), "rule": asdict(rule)}))
 
 
-# The rule's settings that choose a residual policy's prior rather than how a grasp closes on touch:
-# every task runs on the library's grasps, planned under the touch rule, so an environment on the
-# Base task's stall prior uses them as planned (its prior is the ablation's point, not a changed setting).
-PRIOR_SETTINGS: tuple[str, ...] = ("stop_on", "stall_lag")
-
-
 def without_prior(record: dict[str, Any]) -> dict[str, Any]:
-    """An :func:`environment_record` without the rule's ``PRIOR_SETTINGS``."""
+    """An :func:`environment_record` without the rule's ``PRIOR_SETTINGS``: every task runs on the
+    library's grasps, planned under the touch rule, so an environment on the Base task's stall prior
+    uses them as planned (its prior is the ablation's point, not a changed setting)."""
     rule = {k: v for k, v in record.get("rule", {}).items() if k not in PRIOR_SETTINGS}
     return {**record, "rule": rule}
 
