@@ -165,41 +165,42 @@ class D3GraspPPO(PPO):
         st.advantages = self._advantages
 
     # ---------------------------------------------------------------------------- diagnostics
+    def _world_batch(self, a: int, b: int) -> tuple[Any, torch.Tensor]:
+        """Worlds ``a:b`` of the storage as ``(batch, active mask)``, laid out as the update's batches
+        are (rsl-rl's trajectory generator run on a view of these worlds only, when recurrent)."""
+        st = self.storage
+        if self.actor.is_recurrent:
+            part = SimpleNamespace(
+                training_type=st.training_type,
+                num_envs=b - a,
+                observations=st.observations[:, a:b],
+                dones=st.dones[:, a:b],
+                actions=st.actions[:, a:b],
+                values=st.values[:, a:b],
+                advantages=st.advantages[:, a:b],
+                returns=st.returns[:, a:b],
+                actions_log_prob=st.actions_log_prob[:, a:b],
+                distribution_params=tuple(p[:, a:b] for p in st.distribution_params),
+                saved_hidden_state_a=_slice_hidden(st.saved_hidden_state_a, a, b),
+                saved_hidden_state_c=_slice_hidden(st.saved_hidden_state_c, a, b),
+            )
+            (batch,) = RolloutStorage.recurrent_mini_batch_generator(part, 1, 1)  # type: ignore[arg-type]
+            return batch, self.active[:, a:b]
+        batch = RolloutStorage.Batch(
+            observations=st.observations[:, a:b].flatten(0, 1),
+            actions=st.actions[:, a:b].flatten(0, 1),
+            advantages=st.advantages[:, a:b].flatten(0, 1),
+            hidden_states=(None, None),
+        )
+        return batch, self.active[:, a:b].flatten(0, 1)
+
     def _world_halves(self) -> Iterator[tuple[Any, torch.Tensor] | None]:
         """The storage's two halves of the worlds (indices below ``W // 2`` and the rest) as
-        ``(batch, active mask)`` laid out as the update's batches are, or ``None`` for an empty half
-        (a rank of one world: every rank must take part in the same all-reduces)."""
-        st = self.storage
-        h = st.num_envs // 2
-        for a, b in ((0, h), (h, st.num_envs)):
-            if b == a:
-                yield None
-            elif self.actor.is_recurrent:
-                # rsl-rl's trajectory generator run on a view of these worlds only.
-                part = SimpleNamespace(
-                    training_type=st.training_type,
-                    num_envs=b - a,
-                    observations=st.observations[:, a:b],
-                    dones=st.dones[:, a:b],
-                    actions=st.actions[:, a:b],
-                    values=st.values[:, a:b],
-                    advantages=st.advantages[:, a:b],
-                    returns=st.returns[:, a:b],
-                    actions_log_prob=st.actions_log_prob[:, a:b],
-                    distribution_params=tuple(p[:, a:b] for p in st.distribution_params),
-                    saved_hidden_state_a=_slice_hidden(st.saved_hidden_state_a, a, b),
-                    saved_hidden_state_c=_slice_hidden(st.saved_hidden_state_c, a, b),
-                )
-                (batch,) = RolloutStorage.recurrent_mini_batch_generator(part, 1, 1)  # type: ignore[arg-type]
-                yield batch, self.active[:, a:b]
-            else:
-                batch = RolloutStorage.Batch(
-                    observations=st.observations[:, a:b].flatten(0, 1),
-                    actions=st.actions[:, a:b].flatten(0, 1),
-                    advantages=st.advantages[:, a:b].flatten(0, 1),
-                    hidden_states=(None, None),
-                )
-                yield batch, self.active[:, a:b].flatten(0, 1)
+        ``(batch, active mask)``, or ``None`` for an empty half (a rank of one world: every rank must
+        take part in the same all-reduces)."""
+        h = self.storage.num_envs // 2
+        for a, b in ((0, h), (h, self.storage.num_envs)):
+            yield None if b == a else self._world_batch(a, b)
 
     def _half_gradient(self, batch: Any, active: torch.Tensor) -> torch.Tensor:
         """Flat gradient, over the actor's parameters, of ``-sum A log pi(a)`` on the acting samples of
@@ -256,6 +257,25 @@ class D3GraspPPO(PPO):
         out["grad_cosine_split_half"] = flat_cosine(*halves)
         self.diagnostics = out
         return out
+
+    def world_gradients(self) -> torch.Tensor:
+        """This rank's per-world policy-loss gradients, ``(W, n_params)``: row ``w`` is the flat
+        gradient of ``-sum A log pi(a)`` over world ``w``'s acting samples (one episode per world in a
+        whole-episode rollout), at the rollout's parameters. Rows of any set of worlds sum to that
+        set's gradient, so the split-half cosine of any split follows from their Gram matrix
+        (d3grasp.train.gradient_noise). Call after ``compute_returns``; nothing is updated."""
+        flags = [p.requires_grad for p in self.actor.parameters()]
+        for p in self.actor.parameters():
+            p.requires_grad_(True)
+        try:
+            with torch.enable_grad():
+                rows = [
+                    self._half_gradient(*self._world_batch(w, w + 1)) for w in range(self.storage.num_envs)
+                ]
+        finally:
+            for p, f in zip(self.actor.parameters(), flags, strict=True):
+                p.requires_grad_(f)
+        return torch.stack(rows)
 
     # ---------------------------------------------------------------------------- update
     def update(self) -> dict[str, float]:

@@ -300,31 +300,11 @@ class D3GraspRunner(OnPolicyRunner):
         with self.stop_flag.installed() as stop:
             for it in range(start_it, total_it):
                 t_start = time.perf_counter()
-                sim_s = 0.0
-                interrupted = False
+                obs, sim_s, interrupted = self._collect_rollout(env, obs, steps, stop, nan_check)
+                if interrupted:
+                    break
+                t_rollout = time.perf_counter()
                 with torch.inference_mode():
-                    for _ in range(steps):
-                        if stop.requested and not self.is_distributed:
-                            interrupted = True  # weights are those of the last update: save them
-                            break
-                        self._record_step(env)
-                        actions = self.alg.act(obs)
-                        t_sim = time.perf_counter()
-                        obs, rewards, dones, extras = env.step(actions.to(env.device))
-                        sim_s += time.perf_counter() - t_sim
-                        if nan_check:
-                            check_nan(obs, rewards, dones)
-                        obs, rewards, dones = (
-                            obs.to(self.device),
-                            rewards.to(self.device),
-                            dones.to(self.device),
-                        )
-                        self.alg.process_env_step(obs, rewards, dones, extras)
-                        self.logger.process_env_step(rewards, dones, extras, None)
-                        self.episode_stats.add(extras.get("episodes", ()))
-                    if interrupted:
-                        break
-                    t_rollout = time.perf_counter()
                     self.alg.compute_returns(obs)
                 diagnostics = self.alg.diagnose() if hasattr(self.alg, "diagnose") else {}
                 self.alg.actor_frozen = it < critic_warmup  # the actor's normaliser too (D3GraspPPO)
@@ -346,6 +326,49 @@ class D3GraspRunner(OnPolicyRunner):
                 if stop_now:
                     break
         self._end_run()
+
+    def _collect_rollout(
+        self, env: Any, obs: Any, steps: int, stop: Any = None, nan_check: bool = True
+    ) -> tuple[Any, float, bool]:
+        """``steps`` environment steps into the algorithm's storage. Returns (the last observation,
+        seconds inside ``env.step``, whether a stop request cut the rollout short)."""
+        sim_s = 0.0
+        with torch.inference_mode():
+            for _ in range(steps):
+                if stop is not None and stop.requested and not self.is_distributed:
+                    return obs, sim_s, True  # weights are those of the last update: save them
+                self._record_step(env)
+                actions = self.alg.act(obs)
+                t_sim = time.perf_counter()
+                obs, rewards, dones, extras = env.step(actions.to(env.device))
+                sim_s += time.perf_counter() - t_sim
+                if nan_check:
+                    check_nan(obs, rewards, dones)
+                obs, rewards, dones = obs.to(self.device), rewards.to(self.device), dones.to(self.device)
+                self.alg.process_env_step(obs, rewards, dones, extras)
+                self.logger.process_env_step(rewards, dones, extras, None)
+                self.episode_stats.add(extras.get("episodes", ()))
+        return obs, sim_s, False
+
+    def probe_world_gradients(
+        self, rollouts: int, progress: Callable[[int], None] | None = None
+    ) -> torch.Tensor:
+        """Per-world policy-loss gradients of ``rollouts`` whole-episode rollouts at the loaded
+        parameters, nothing updated (weights and normalisers stay): ``(rollouts x worlds, n_params)``
+        for this rank's worlds (``D3GraspPPO.world_gradients``). For d3grasp.train.gradient_noise."""
+        env, steps = self.env, int(self.cfg["num_steps_per_env"])
+        obs = env.get_observations().to(self.device)
+        self.alg.train_mode()  # sampled actions, as in training
+        rows = []
+        for k in range(rollouts):
+            obs, _, _ = self._collect_rollout(env, obs, steps)
+            with torch.inference_mode():
+                self.alg.compute_returns(obs)
+            rows.append(self.alg.world_gradients())
+            self.alg.storage.clear()
+            if progress is not None:
+                progress(k + 1)
+        return torch.cat(rows)
 
     def _count_iteration(self, timing: IterationTiming, wall_clock_s: float) -> None:
         """Record a completed iteration's timing and the run's cumulative env-steps and wall-clock."""

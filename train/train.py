@@ -177,9 +177,16 @@ def rank_env_settings(
     return per_rank[dist.rank], math.gcd(*per_rank), overrides
 
 
-def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspRunner:
+def run_training(
+    args: argparse.Namespace,
+    argv: Sequence[str] = (),
+    work: Callable[[D3GraspRunner], None] | None = None,
+) -> D3GraspRunner:
     """Train as ``args`` (``make_train_parser()``'s flags) say; returns the runner (its ``log_dir``
-    is the run folder on rank 0 and None on other ranks; its environment is closed)."""
+    is the run folder on rank 0 and None on other ranks; its environment is closed).
+
+    ``work``: instead of training, call ``work(runner)`` on the runner built and loaded as training
+    would build it, with no run folder (measurements at a checkpoint: d3grasp.train.gradient_noise)."""
     dist = DistInfo.from_env()
     get_task(args.task)  # unknown task -> UnknownTaskError before anything is built
     device = resolve_device(args.device, dist)
@@ -230,7 +237,7 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
         alg["num_mini_batches"] = fit_mini_batches(alg["num_mini_batches"], common_envs or env.num_envs)
 
         log_dir: Path | None = None
-        if dist.rank == 0:
+        if dist.rank == 0 and work is None:
             stamp = datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
             name = stamp + (f"_{args.run_name}" if args.run_name else "")
             log_dir = experiment_dir / name
@@ -256,6 +263,9 @@ def run_training(args: argparse.Namespace, argv: Sequence[str] = ()) -> D3GraspR
             train_cfg["resumed_from"] = None if resume_path is None else str(resume_path)
             train_cfg["world_size"] = dist.world_size
             _dump_params(log_dir, getattr(env, "cfg", {}), train_cfg, argv)
+        if work is not None:
+            work(runner)
+            return runner
         runner.learn(
             int(train_cfg["max_iterations"]), init_at_random_ep_len=bool(train_cfg["init_at_random_ep_len"])
         )
