@@ -508,6 +508,43 @@ def test_critic_warmup_leaves_the_actor_unchanged() -> None:
     assert any(not torch.equal(actor2[k], actor3[k]) for k in actor2)
 
 
+def test_gradient_probe_changes_nothing_and_reports(tmp_path: Path) -> None:
+    """The gradient-noise probe collects rollouts at a checkpoint's weights and updates nothing
+    (weights, normalisers, optimiser); one row per world and rollout; the command writes its report."""
+    import json
+
+    from d3grasp.train import gradient_noise
+
+    env = StandInEnv(DEFAULT_TASK, num_envs=4, seed=3)
+    runner = D3GraspRunner(env, make_train_cfg(DEFAULT_TASK), log_dir=None, task_name=DEFAULT_TASK)
+    runner.learn(1)  # normalisers and weights away from their initial values
+    ckpt = tmp_path / "model_1.pt"
+    runner.save(str(ckpt))
+    state = {k: v.clone() for k, v in runner.alg.actor.state_dict().items()}
+    state.update({f"critic.{k}": v.clone() for k, v in runner.alg.critic.state_dict().items()})
+    runner.episode_stats.clear()
+    rows = runner.probe_world_gradients(2)
+    n_params = sum(p.numel() for p in runner.alg.actor.parameters())
+    assert (
+        rows.shape == (2 * 4, n_params) and bool(torch.isfinite(rows).all()) and float(rows.abs().sum()) > 0
+    )
+    after = dict(runner.alg.actor.state_dict())
+    after.update({f"critic.{k}": v for k, v in runner.alg.critic.state_dict().items()})
+    assert all(torch.equal(state[k], after[k]) for k in state)
+    assert float(runner.episode_stats.counts[0, 0]) == 8  # 6-step episodes in 6-step rollouts
+    out = tmp_path / "gn.json"
+    argv = ["--task", DEFAULT_TASK, "--num_envs", "4", "--env_factory", STANDIN_FACTORY,
+            "--checkpoint", str(ckpt), "--rollouts", "2", "--halves", "2", "--torch_threads", "1",
+            "--out", str(out)]  # fmt: skip
+    assert gradient_noise.main(argv) == 0
+    rep = json.loads(out.read_text())
+    assert rep["episodes"] == 8 and rep["parameters"] == n_params and rep["outcomes"]["episodes"] == 8
+    assert [r["half"] for r in rep["splits"]] == [2] and set(rep["by_tensor"]) == {
+        name for name, _ in runner.alg.actor.named_parameters()
+    }
+    assert out.with_suffix(".grams.pt").is_file()
+
+
 def test_agent_overrides_set_nested_runner_values() -> None:
     args = make_train_parser().parse_args(
         ["--agent", "algorithm.learning_rate=1e-4", "--agent", "actor.distribution_cfg.init_std=0.15"]
