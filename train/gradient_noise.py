@@ -219,23 +219,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     from d3grasp.train.cli_args import make_train_parser
     from d3grasp.train.train import run_training
 
-    from d3grasp.cli.args import run_command
+    from d3grasp.cli.args import positive_int, run_command
 
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = make_train_parser()
     parser.prog = "python -m d3grasp.train.gradient_noise"
     parser.add_argument(
-        "--rollouts", type=int, default=5, help="whole-episode rollouts to collect (default 5)"
+        "--rollouts", type=positive_int, default=5, help="whole-episode rollouts to collect (default 5)"
     )
     parser.add_argument(
-        "--halves", type=int, nargs="+", default=[8, 16, 32, 64, 128], help="episodes a half to split into"
+        "--halves",
+        type=positive_int,
+        nargs="+",
+        default=[8, 16, 32, 64, 128],
+        help="episodes a half to split into",
     )
     parser.add_argument("--out", type=Path, default=None, help="write the report here (JSON)")
     args = parser.parse_args(argv)
     if not args.checkpoint:
         parser.error("--checkpoint is required: the parameters to measure the gradient at")
-    if args.rollouts < 1:
-        parser.error("--rollouts must be at least 1")
     args.resume = True
 
     def probe(runner: Any) -> None:
