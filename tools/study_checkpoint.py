@@ -17,7 +17,8 @@ e.g. ``decision_steps=60``), so the same weights can be measured or trained in a
     python tools/study_checkpoint.py RUN/model_50.pt /tmp/d60.pt --interface decision_steps=60
 
 Then measure (python -m d3grasp.train.gradient_noise --checkpoint /tmp/shifted.pt ...) or train from it
-(d3grasp-train --resume --checkpoint /tmp/shifted.pt ...). docs/studies/gradient_noise.md reports both.
+(d3grasp-train --resume --checkpoint /tmp/shifted.pt ...). docs/studies/gradient_noise.md reports the
+measurements.
 """
 
 from __future__ import annotations

@@ -8,7 +8,11 @@ gradients of two halves of an update's worlds. It answers "is there a signal?" f
 This command answers "how large a batch would show it?": it loads a checkpoint, collects
 ``--rollouts`` whole-episode rollouts at its parameters (sampled actions, as in training; nothing is
 updated, not even the normalisers), takes every world's own policy-loss gradient
-(``D3GraspPPO.world_gradients``) and reads, from their Gram matrix:
+(``D3GraspPPO.world_gradients``) and reads, from their Gram matrix, the figures below. A row is one
+world's rollout of one episode length: about one episode (episodes that end early make it a little
+more; the recipe's 52 worlds finish 52-66 episodes a rollout). "Episodes" in the report count rows.
+Rows of one world in consecutive rollouts, and rows of one rollout (advantages normalised together),
+are not quite independent, so the statistics below are close to, not exactly, unbiased.
 
 - the per-episode signal-to-noise ratio ``r = |mu|^2 / sigma^2``: ``mu`` the mean of the per-episode
   gradients (``|mu|^2`` estimated without bias: ``(|sum g|^2 - sum |g|^2) / (N (N - 1))``) and
@@ -52,8 +56,9 @@ def gram_statistics(gram: torch.Tensor, weights: torch.Tensor | None = None) -> 
     """Signal and noise of N per-episode gradients from their Gram matrix ``gram[i, j] = g_i . g_j``.
 
     ``weights`` (N,) counts how often each episode is drawn (a bootstrap resample); None: once each.
-    Returns ``episodes`` (N), ``mean_sq`` (unbiased |mu|^2), ``noise`` (summed variance sigma^2, unbiased)
-    and ``snr`` (mean_sq / noise; may be negative when |mu|^2 is below its own estimation noise).
+    Returns ``episodes`` (N), ``mean_sq`` (|mu|^2 from the products of different episodes: unbiased for
+    independent rows), ``noise`` (their summed variance sigma^2, unbiased without weights) and ``snr``
+    (mean_sq / noise; may be negative when |mu|^2 is below its own estimation noise).
     """
     gram = gram.to(torch.float64)
     w = torch.ones(gram.shape[0], dtype=torch.float64) if weights is None else weights.to(torch.float64)
@@ -116,6 +121,9 @@ def snr_interval(gram: torch.Tensor, boot: int, generator: torch.Generator) -> t
     values = []
     for _ in range(boot):
         counts = torch.bincount(torch.randint(total, (total,), generator=generator), minlength=total)
+        if int((counts > 0).sum()) < 2:  # one episode drawn N times: no pair to compare
+            values.append(math.nan)
+            continue
         values.append(gram_statistics(gram, counts)["snr"])
     q = torch.tensor([0.025, 0.975], dtype=torch.float64)
     lo, hi = torch.tensor(values, dtype=torch.float64).nanquantile(q).tolist()
@@ -206,10 +214,21 @@ def format_report(rep: dict) -> str:
     return "\n".join(lines)
 
 
+def _finite(value: Any) -> Any:
+    """``value`` with infinite or NaN floats as None (strict JSON has neither)."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
 def _gather_rows(rows: torch.Tensor) -> torch.Tensor:
     """Every rank's per-world gradient rows, pooled (ranks may hold different numbers of worlds)."""
     if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
-        return rows
+        return rows.cpu()  # the statistics run on the CPU, whatever device the rollouts ran on
     parts: list[Any] = [None] * torch.distributed.get_world_size()
     torch.distributed.all_gather_object(parts, rows.cpu())
     return torch.cat(parts)
@@ -276,7 +295,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(format_report(rep))
         if args.out is not None:
             args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(json.dumps(rep, indent=1), encoding="utf-8")
+            args.out.write_text(json.dumps(_finite(rep), indent=1), encoding="utf-8")
             # The Gram matrices, to read other splits later without collecting again.
             torch.save({"all": gram, **tensor_grams}, args.out.with_suffix(".grams.pt"))
             print(f"[gradient_noise] wrote {args.out}")

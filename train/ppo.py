@@ -260,8 +260,8 @@ class D3GraspPPO(PPO):
 
     def world_gradients(self) -> torch.Tensor:
         """This rank's per-world policy-loss gradients, ``(W, n_params)``: row ``w`` is the flat
-        gradient of ``-sum A log pi(a)`` over world ``w``'s acting samples (one episode per world in a
-        whole-episode rollout), at the rollout's parameters. Rows of any set of worlds sum to that
+        gradient of ``-sum A log pi(a)`` over world ``w``'s acting samples (about one episode per
+        world in a whole-episode rollout), at the rollout's parameters. Rows of any set of worlds sum to that
         set's gradient, so the split-half cosine of any split follows from their Gram matrix
         (d3grasp.train.gradient_noise). Call after ``compute_returns``; nothing is updated."""
         flags = [p.requires_grad for p in self.actor.parameters()]

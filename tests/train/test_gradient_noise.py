@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 from d3grasp.train.gradient_noise import (
+    _finite,
     episodes_for_cosine,
     expected_split_cosine,
     gram_statistics,
@@ -59,6 +60,8 @@ def test_predicted_cosine_and_episodes_invert_each_other() -> None:
     assert math.isinf(episodes_for_cosine(0.0, 0.3))
     with pytest.raises(ValueError):
         episodes_for_cosine(0.01, 1.0)
+    # The report is written as strict JSON: no Infinity or NaN.
+    assert _finite({"a": [math.inf, 1.0], "b": math.nan, "c": "x"}) == {"a": [None, 1.0], "b": None, "c": "x"}
 
 
 def test_known_signal_and_noise_are_recovered() -> None:

@@ -510,7 +510,8 @@ def test_critic_warmup_leaves_the_actor_unchanged() -> None:
 
 def test_gradient_probe_changes_nothing_and_reports(tmp_path: Path) -> None:
     """The gradient-noise probe collects rollouts at a checkpoint's weights and updates nothing
-    (weights, normalisers, optimiser); one row per world and rollout; the command writes its report."""
+    (weights and normalisers of actor and critic); one row per world and rollout; the command writes
+    its report."""
     import json
 
     from d3grasp.train import gradient_noise
