@@ -142,11 +142,11 @@ def report(
     bootstrap interval, the episodes per update for cosines 0.1 and 0.3, and for each half size the
     predicted and measured split-half cosine (median and quartiles of ``draws`` random splits).
     ``tensor_grams``: the Gram matrices of single parameter tensors, each reported the same way
-    (its ratio, interval and the episodes a cosine of 0.3 needs): where a signal is, if anywhere."""
+    (its ratio, interval and the episodes cosines of 0.1 and 0.3 need): where a signal is, if anywhere."""
     g = torch.Generator().manual_seed(seed)
     stats = gram_statistics(gram)
+    whole = _ratio_summary(gram, stats["snr"], boot, g)  # before the splits: the generator's order
     total = gram.shape[0]
-    lo, hi = snr_interval(gram, boot, g)
     rows = []
     for n in sizes:
         if 2 * n > total:
@@ -164,26 +164,25 @@ def report(
         )
     by_tensor = {}
     for name, tg in (tensor_grams or {}).items():
-        t_stats = gram_statistics(tg)
-        t_lo, t_hi = snr_interval(tg, boot, g)
-        by_tensor[name] = {
-            "snr": t_stats["snr"],
-            "snr_interval": [t_lo, t_hi],
-            "episodes_for_0.3": episodes_for_cosine(t_stats["snr"], 0.3),
-        }
+        snr = gram_statistics(tg)["snr"]
+        by_tensor[name] = {"snr": snr, **_ratio_summary(tg, snr, boot, g)}
+    return {**stats, **whole, "splits": rows, "by_tensor": by_tensor}
+
+
+def _ratio_summary(gram: torch.Tensor, snr: float, boot: int, g: torch.Generator) -> dict[str, Any]:
+    """The bootstrap interval of ``snr`` (the ratio of ``gram``'s rows) and the episodes per update
+    cosines of 0.1 and 0.3 need, with the interval's bounds."""
+    lo, hi = snr_interval(gram, boot, g)
     return {
-        **stats,
         "snr_interval": [lo, hi],
         "episodes_for_cosine": {
             str(c): {
-                "estimate": episodes_for_cosine(stats["snr"], c),
+                "estimate": episodes_for_cosine(snr, c),
                 # a higher r needs fewer episodes: the interval's ends swap
                 "interval": [episodes_for_cosine(hi, c), episodes_for_cosine(lo, c)],
             }
             for c in (0.1, 0.3)
         },
-        "splits": rows,
-        "by_tensor": by_tensor,
     }
 
 
@@ -210,7 +209,8 @@ def format_report(rep: dict) -> str:
         lines.append("|---|---|---|---|")
         for name, t in rep["by_tensor"].items():
             a, b = t["snr_interval"]
-            lines.append(f"| {name} | {t['snr']:+.2e} | [{a:+.2e}, {b:+.2e}] | {t['episodes_for_0.3']:.0f} |")
+            need = t["episodes_for_cosine"]["0.3"]["estimate"]
+            lines.append(f"| {name} | {t['snr']:+.2e} | [{a:+.2e}, {b:+.2e}] | {need:.0f} |")
     return "\n".join(lines)
 
 
@@ -225,9 +225,9 @@ def _finite(value: Any) -> Any:
     return value
 
 
-def _gather_rows(rows: torch.Tensor) -> torch.Tensor:
+def _gather_rows(rows: torch.Tensor, distributed: bool) -> torch.Tensor:
     """Every rank's per-world gradient rows, pooled (ranks may hold different numbers of worlds)."""
-    if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+    if not distributed:
         return rows.cpu()  # the statistics run on the CPU, whatever device the rollouts ran on
     parts: list[Any] = [None] * torch.distributed.get_world_size()
     torch.distributed.all_gather_object(parts, rows.cpu())
@@ -260,16 +260,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.resume = True
 
     def probe(runner: Any) -> None:
-        rank0 = not (torch.distributed.is_available() and torch.distributed.is_initialized()) or (
-            torch.distributed.get_rank() == 0
-        )
+        rank0 = runner.gpu_global_rank == 0  # 0 without distribution too
 
         def progress(k: int) -> None:
             if rank0:
                 print(f"[gradient_noise] rollout {k}/{args.rollouts}", flush=True)
 
         runner.episode_stats.clear()
-        rows = _gather_rows(runner.probe_world_gradients(args.rollouts, progress))
+        rows = _gather_rows(runner.probe_world_gradients(args.rollouts, progress), runner.is_distributed)
         runner.episode_stats.all_reduce()  # every rank takes part
         if not rank0:
             return
@@ -280,12 +278,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             if k.endswith("/all") or k == "Success/episodes"
         }
         rows = rows.to(torch.float64)
-        gram = rows @ rows.T
         tensor_grams, start = {}, 0
         for name, param in runner.alg.actor.named_parameters():  # the rows' order (world_gradients)
             part = rows[:, start : start + param.numel()]
             tensor_grams[name] = part @ part.T
             start += param.numel()
+        gram = sum(tensor_grams.values())  # the whole rows' products are the tensors' summed
         rep = report(gram, args.halves, tensor_grams=tensor_grams)
         rep["checkpoint"] = str(args.checkpoint)
         rep["rollouts"] = args.rollouts

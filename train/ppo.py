@@ -27,6 +27,7 @@ RND, symmetry augmentation and mixed precision are not used by d3grasp's tasks a
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Iterator, Sequence
 from types import SimpleNamespace
@@ -202,6 +203,20 @@ class D3GraspPPO(PPO):
         for a, b in ((0, h), (h, self.storage.num_envs)):
             yield None if b == a else self._world_batch(a, b)
 
+    @contextlib.contextmanager
+    def _actor_gradients(self) -> Iterator[None]:
+        """Gradients on, for every actor parameter: they may be frozen (the critic's warm-up), and the
+        policy gradient is measured all the same. Each parameter's flag is restored after."""
+        flags = [p.requires_grad for p in self.actor.parameters()]
+        for p in self.actor.parameters():
+            p.requires_grad_(True)
+        try:
+            with torch.enable_grad():
+                yield
+        finally:
+            for p, f in zip(self.actor.parameters(), flags, strict=True):
+                p.requires_grad_(f)
+
     def _half_gradient(self, batch: Any, active: torch.Tensor) -> torch.Tensor:
         """Flat gradient, over the actor's parameters, of ``-sum A log pi(a)`` on the acting samples of
         one half: the policy loss's gradient at the rollout's parameters (ratio 1: the clip is inactive)."""
@@ -230,20 +245,12 @@ class D3GraspPPO(PPO):
             self.phase_ids == i for i in range(len(self.phase_names))
         ]
         sums = torch.stack([variance_sums(st.returns[g], st.values[g]) for g in groups])
-        # The actor's parameters may be frozen (critic warm-up): the gradient is measured all the same.
-        flags = [p.requires_grad for p in self.actor.parameters()]
-        for p in self.actor.parameters():
-            p.requires_grad_(True)
-        try:
-            with torch.enable_grad():
-                n = sum(p.numel() for p in self.actor.parameters())
-                halves = [
-                    torch.zeros(n, device=self.device) if half is None else self._half_gradient(*half)
-                    for half in self._world_halves()
-                ]
-        finally:
-            for p, f in zip(self.actor.parameters(), flags, strict=True):
-                p.requires_grad_(f)
+        with self._actor_gradients():
+            n = sum(p.numel() for p in self.actor.parameters())
+            halves = [
+                torch.zeros(n, device=self.device) if half is None else self._half_gradient(*half)
+                for half in self._world_halves()
+            ]
         if self.is_multi_gpu:
             torch.distributed.all_reduce(episodes)
             torch.distributed.all_reduce(sums)
@@ -264,17 +271,8 @@ class D3GraspPPO(PPO):
         world in a whole-episode rollout), at the rollout's parameters. Rows of any set of worlds sum to that
         set's gradient, so the split-half cosine of any split follows from their Gram matrix
         (d3grasp.train.gradient_noise). Call after ``compute_returns``; nothing is updated."""
-        flags = [p.requires_grad for p in self.actor.parameters()]
-        for p in self.actor.parameters():
-            p.requires_grad_(True)
-        try:
-            with torch.enable_grad():
-                rows = [
-                    self._half_gradient(*self._world_batch(w, w + 1)) for w in range(self.storage.num_envs)
-                ]
-        finally:
-            for p, f in zip(self.actor.parameters(), flags, strict=True):
-                p.requires_grad_(f)
+        with self._actor_gradients():
+            rows = [self._half_gradient(*self._world_batch(w, w + 1)) for w in range(self.storage.num_envs)]
         return torch.stack(rows)
 
     # ---------------------------------------------------------------------------- update
