@@ -227,6 +227,10 @@ class CameraConfig:
     calib_pos_std: float = 0.002  # m per axis, camera position error of the extrinsic calibration
     calib_rot_std: float = 0.005  # rad per axis (0.3 deg)
     min_height: float = 0.004  # m above the fitted table plane that counts as object
+    # Turn the box fit into the body's pose with the object's own footprint (vision/footprint.py):
+    # the planner knows the mesh it planned on, and a fit round a cross, a mug or an L-shape is off
+    # its body frame by the same turn and offset every time. False: the fit's centre and yaw as seen.
+    register_footprint: bool = True
 
 
 @dataclass

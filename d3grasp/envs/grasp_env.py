@@ -92,6 +92,17 @@ class GraspEnv:
             self.perception = CameraPerception(
                 self.model, self.model.body_world.numpy(), self.layout.object_body, cfg.camera, cfg.seed
             )
+        # Each world's object footprint in its own frame, for registering the camera's box fit.
+        self.footprints: list | None = None
+        if self.perception is not None and cfg.camera.register_footprint:
+            from d3grasp.vision.footprint import footprint_of_pieces, object_pieces
+
+            seen: dict[str, Any] = {}
+            self.footprints = []
+            for w, entry in enumerate(self.world_entries):
+                if entry.id not in seen:
+                    seen[entry.id] = footprint_of_pieces(object_pieces(self.model, self.layout, w))
+                self.footprints.append(seen[entry.id])
         # Residual modes: the rule-based controller runs inside the env and the policy's actions are
         # offsets on its joint targets.
         self.residual_base = None

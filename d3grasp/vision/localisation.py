@@ -44,6 +44,8 @@ class ObjectEstimate:
     table_normal: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
     table_offset: float = 0.0  # plane: normal . p = offset
     ok: bool = True  # False: no object found, the fields hold the fallback
+    # (n, 3) world: the object's pixels projected onto the table plane (its footprint as seen)
+    footprint: np.ndarray | None = None
 
 
 def fit_plane_ransac(
@@ -202,4 +204,5 @@ def localise_object(
         table_normal=normal,
         table_offset=offset,
         ok=True,
+        footprint=obj - np.outer(heights, normal),
     )

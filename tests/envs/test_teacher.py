@@ -84,9 +84,14 @@ def test_the_correction_moves_the_planned_grasp_onto_the_grasp_at_the_true_pose(
         assert min(matches) < 2e-4, (w, corr)
         # The camera's error is a few mm and a few degrees: so is the correction (no half turn).
         assert np.linalg.norm(corr[:3]) < 0.03 and abs(corr[3]) < 0.5
-        # The centre's correction: the true centre less the camera's (its error's norm is recorded).
+        # The centre's correction: the true origin less the camera's pose estimate, the box fit
+        # registered to the box's footprint: across, that registration's recorded error; up, the box
+        # fit's height error (its 3-D error less its horizontal one).
         centre = env.centre_correction[w].double().numpy()
-        assert np.linalg.norm(centre) == pytest.approx(env.loc_records[w]["loc_error"], rel=1e-4, abs=1e-6)
+        rec = env.loc_records[w]
+        assert np.linalg.norm(centre[:2]) == pytest.approx(rec["loc_registered_xy"], rel=1e-4, abs=1e-6)
+        up = math.sqrt(max(rec["loc_error"] ** 2 - rec["loc_error_xy"] ** 2, 0.0))
+        assert abs(centre[2]) == pytest.approx(up, rel=1e-3, abs=1e-6)
 
 
 def test_the_teacher_commands_the_correction_over_the_limits(camera_env):
@@ -113,3 +118,14 @@ def test_the_teacher_needs_a_wrist():
             PoseTeacher(env)
     finally:
         env.close()
+
+
+def test_the_footprint_registered_to_is_the_boxs_own(camera_env):
+    """The footprint drawn from the box's collision shape (for registering the camera's fit) spans
+    the manifest's extents round the body origin."""
+    env = camera_env
+    ex = np.asarray(env.world_entries[0].extents[:2])
+    fp = env.footprints[0]
+    np.testing.assert_allclose(np.ptp(fp.outline, axis=0), ex, atol=2.0 * fp.cell)
+    np.testing.assert_allclose(fp.centroid, 0.0, atol=fp.cell)
+    assert fp.outside.min() == 0.0 and fp.outside.max() >= 2.0 * fp.cell

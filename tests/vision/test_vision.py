@@ -20,6 +20,7 @@ from d3grasp.vision.camera import (
     perturb_pose,
     rotation_to_quat_xyzw,
 )
+from d3grasp.vision.footprint import footprint_of_pieces, register
 from d3grasp.vision.localisation import fit_plane_ransac, localise_object, min_area_rectangle
 from d3grasp.vision.perception import localisation_error
 
@@ -246,3 +247,92 @@ def test_env_camera_perception_records_localisation_error():
             break
     assert {ep["object"] for ep in episodes} == {"box_00", "sponge_cube_s"}
     assert all(0.0 <= ep["loc_error"] < 2.0 * CENTRE_BOUND for ep in episodes)
+
+
+# --- Registration to the object's own footprint (vision/footprint.py) ---------------------------
+# Objects made of upright boxes (centre (x, y) in the body frame, half sizes): an L-shape, whose two
+# ends a box fit cannot tell apart, and a plus, whose box fit lies at 45 degrees to its arms. The
+# body origin is the centre of the axis-aligned bounding box, as the asset authoring makes it.
+L_SHAPE = [((0.0, -0.02), (0.05, 0.01, 0.02)), ((-0.04, 0.01), (0.01, 0.02, 0.02))]
+PLUS = [((0.0, 0.0), (0.045, 0.01, 0.02)), ((0.0, 0.0), (0.01, 0.045, 0.02))]
+
+
+def _box_corners(centre_xy, half) -> np.ndarray:
+    c = np.array([centre_xy[0], centre_xy[1], 0.0])
+    return np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)]) * np.asarray(half) + c
+
+
+def _cast_boxes(intr, pose, boxes, origin_xy, yaw) -> np.ndarray:
+    """Depth of a table and a union of upright boxes at body pose (origin, yaw): the nearest hit."""
+    r = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    depths = []
+    for c, half in boxes:
+        xy = np.asarray(origin_xy) + r @ np.asarray(c)
+        depths.append(_cast_box_depth(intr, pose, np.array([xy[0], xy[1], half[2]]), np.asarray(half), yaw))
+    return np.min(np.stack(depths), axis=0)
+
+
+def _camera():
+    cfg = CameraConfig()
+    intr = CameraIntrinsics.from_fov(cfg.width, cfg.height, math.radians(cfg.fov_deg))
+    return intr, look_at_pose(np.asarray(cfg.position), np.asarray(cfg.target))
+
+
+def test_footprint_of_an_l_shape_matches_its_geometry():
+    ref = footprint_of_pieces([_box_corners(c, h) for c, h in L_SHAPE])
+    # Area-weighted centroid of the two rectangles: 10 x 2 cm at (0, -2) cm and 2 x 4 cm at (-4, 1) cm.
+    a1, a2 = 0.1 * 0.02, 0.02 * 0.04
+    expected = (a1 * np.array([0.0, -0.02]) + a2 * np.array([-0.04, 0.01])) / (a1 + a2)
+    np.testing.assert_allclose(ref.centroid, expected, atol=2e-4)
+
+    def outside(p):
+        ij = np.floor((np.asarray(p) - ref.origin) / ref.cell).astype(int)
+        return ref.outside[ij[0], ij[1]]
+
+    assert outside((0.0, -0.02)) == 0.0  # inside the bar
+    assert outside((0.0, 0.0)) == pytest.approx(0.01, abs=1.5 * ref.cell)  # 1 cm off the bar
+    assert outside((-0.0295, 0.02)) == pytest.approx(0.0005, abs=1.5 * ref.cell)  # just right of the arm
+    # Every outline cell lies on the L's edge (within a cell of it), none deep inside or far out.
+    lo = np.array([[-0.05, -0.03], [-0.05, -0.01]])
+    hi = np.array([[0.05, -0.01], [-0.03, 0.03]])
+    for p in ref.outline:
+        d_in = [max(np.max(lo[k] - p), np.max(p - hi[k])) for k in range(2)]  # < 0 inside box k
+        assert -1.5 * ref.cell <= min(d_in) <= 1.5 * ref.cell
+
+
+@pytest.mark.parametrize("yaw", [0.3, 2.5, -2.0])
+def test_register_finds_an_l_shapes_end_from_a_cast_depth_image(yaw):
+    intr, pose = _camera()
+    origin = np.array([0.015, -0.01])
+    depth = _cast_boxes(intr, pose, L_SHAPE, origin, yaw)
+    est = localise_object(depth, intr, pose, np.random.default_rng(0))
+    ref = footprint_of_pieces([_box_corners(c, h) for c, h in L_SHAPE])
+    xy, got, extents = register(est.footprint, ref)
+    assert abs(math.atan2(math.sin(got - yaw), math.cos(got - yaw))) < YAW_BOUND  # the full turn, not mod 180
+    assert np.linalg.norm(xy - origin) < 2.0 * CENTRE_BOUND
+    np.testing.assert_allclose(extents, [0.1, 0.06], atol=EXTENT_BOUND)
+
+
+def test_register_turns_a_plus_back_onto_its_arms():
+    intr, pose = _camera()
+    yaw, origin = 0.2, np.array([-0.01, 0.012])
+    depth = _cast_boxes(intr, pose, PLUS, origin, yaw)
+    est = localise_object(depth, intr, pose, np.random.default_rng(0))
+    # The box fit round a plus lies at 45 degrees to its arms: the raw estimate is as wrong as it can be.
+    assert localisation_error(est, np.r_[origin, 0.02], yaw, np.array([0.09, 0.09, 0.04])).yaw > 0.6
+    xy, got, _ = register(est.footprint, footprint_of_pieces([_box_corners(c, h) for c, h in PLUS]))
+    quarter = (got - yaw) % (0.5 * math.pi)
+    assert min(quarter, 0.5 * math.pi - quarter) < YAW_BOUND  # its quarter turns are the same shape
+    assert abs(got) <= 0.25 * math.pi + 1e-9  # of those, the smallest yaw
+    assert np.linalg.norm(xy - origin) < 2.0 * CENTRE_BOUND
+
+
+def test_register_keeps_the_smaller_yaw_of_a_box_and_its_half_turn():
+    intr, pose = _camera()
+    box = [((0.0, 0.0), (0.04, 0.015, 0.02))]
+    origin = np.array([0.005, 0.02])
+    depth = _cast_boxes(intr, pose, box, origin, 0.3 + math.pi)
+    est = localise_object(depth, intr, pose, np.random.default_rng(0))
+    xy, got, _ = register(est.footprint, footprint_of_pieces([_box_corners(c, h) for c, h in box]))
+    assert got == pytest.approx(0.3, abs=YAW_BOUND)
+    assert np.linalg.norm(xy - origin) < 2.0 * CENTRE_BOUND

@@ -103,10 +103,13 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
     placed = lay.rest_particle_q[p0 : p0 + n] @ rot_z(yaw).T + obj_pos if soft else None
     plan_pos, plan_yaw, plan_ex = obj_pos, yaw, ex
     estimated = env.perception is not None
+    registered = False
     if estimated:
         # The planner sees the camera's estimate; the truth only scores its error.
-        plan_pos, plan_yaw, plan_ex = _perceive(env, w, obj_pos, qz, yaw, ex, placed)
-    pose, used_yaw, place = _plan_grasp(env, w, e.id, plan_pos, plan_yaw, plan_ex, estimated=estimated)
+        plan_pos, plan_yaw, plan_ex, registered = _perceive(env, w, obj_pos, qz, yaw, ex, placed)
+    pose, used_yaw, place = _plan_grasp(
+        env, w, e.id, plan_pos, plan_yaw, plan_ex, estimated=estimated and not registered
+    )
     _set_hand(env, w, arrays, pose)
     env.pose_correction[w] = 0.0
     env.centre_correction[w] = 0.0
@@ -303,11 +306,15 @@ def _reset_bookkeeping(env: GraspEnv, env_ids: torch.Tensor) -> None:
 
 def _perceive(
     env: GraspEnv, w, obj_pos, qz, yaw, ex, placed_particles
-) -> tuple[np.ndarray, float, np.ndarray]:
-    """Camera estimate (centre, yaw, extents) of world ``w``'s freshly placed object; logs its error.
+) -> tuple[np.ndarray, float, np.ndarray, bool]:
+    """Camera estimate of world ``w``'s freshly placed object for the planner: (position, yaw,
+    extents, registered); logs its error. Registered (``camera.register_footprint``): the box fit
+    turned into the body's pose with the object's footprint (vision/footprint.py); otherwise the
+    fit's centre, yaw and sizes as seen.
 
     ``placed_particles``: a soft object's nodes at the new pose (None for a rigid object).
     """
+    from d3grasp.vision.footprint import register
     from d3grasp.vision.perception import localisation_error
 
     lay = env.layout
@@ -322,4 +329,12 @@ def _perceive(
     )
     err = localisation_error(est, obj_pos, yaw, ex)
     env.loc_records[w] = {"perception": "camera", "loc_ok": bool(est.ok), **err.as_record()}
-    return est.centre, est.yaw, est.extents
+    if env.footprints is None or not est.ok:
+        return est.centre, est.yaw, est.extents, False
+    xy, body_yaw, body_ex = register(est.footprint, env.footprints[w])
+    pos = np.array([xy[0], xy[1], est.centre[2]])  # the body origin is the box's centre: half its height
+    env.loc_records[w].update(
+        loc_registered_xy=float(np.linalg.norm(xy - np.asarray(obj_pos)[:2])),
+        loc_registered_yaw=float(abs(_wrap(body_yaw - yaw))),
+    )
+    return pos, body_yaw, np.array([body_ex[0], body_ex[1], est.extents[2]]), True
