@@ -96,6 +96,11 @@ def rot_z(a: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def wrap_angle(a: float) -> float:
+    """``a`` rad as the same turn in (-pi, pi]."""
+    return math.atan2(math.sin(a), math.cos(a))
+
+
 @dataclass(frozen=True)
 class GraspPose:
     grasp: str

@@ -25,6 +25,9 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from d3grasp.authoring.hand import quat_xyzw_to_matrix
+from d3grasp.envs.grasps import rot_z, wrap_angle
+
 RASTER_CELL = 0.001  # m, the grid the model's footprint is drawn on
 YAW_STEP = math.radians(2.0)  # the full-turn scan; then refined to YAW_STEP / 5 round the pick
 # m of score within which turns count as the same shape: the camera's pixel is ~2 mm at the table
@@ -48,12 +51,7 @@ class Footprint:
 
 
 def _rot2(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s], [s, c]])
-
-
-def _wrap(a: float) -> float:
-    return math.atan2(math.sin(a), math.cos(a))
+    return rot_z(a)[:2, :2]
 
 
 def footprint_of_pieces(pieces: list[np.ndarray], cell: float = RASTER_CELL) -> Footprint:
@@ -146,7 +144,7 @@ def register(
         grid = shift + np.stack(np.meshgrid(ticks, ticks, indexing="ij"), axis=-1).reshape(-1, 2)
         shift = grid[np.argmin([_score(ref, seen, tree, yaw, d) for d in grid])]
     fine = yaw + np.linspace(-YAW_STEP, YAW_STEP, 11)
-    yaw = _wrap(float(fine[np.argmin([_score(ref, seen, tree, y, shift) for y in fine])]))
+    yaw = wrap_angle(float(fine[np.argmin([_score(ref, seen, tree, y, shift) for y in fine])]))
     origin = c + shift - _rot2(yaw) @ ref.centroid
     body = (seen_all - origin) @ _rot2(yaw)
     return origin, yaw, np.ptp(body, axis=0)
@@ -156,8 +154,6 @@ def object_pieces(model, layout, world: int) -> list[np.ndarray]:
     """World ``world``'s object as convex pieces of body-frame points: a rigid object's collision
     shapes (meshes' vertices, boxes' corners, round shapes' rims), a soft object's rest nodes."""
     import newton
-
-    from d3grasp.authoring.hand import quat_xyzw_to_matrix
 
     p0, n = int(layout.particle_start[world]), int(layout.particle_count[world])
     if n:

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from d3grasp.envs.grasps import GraspPose, choose_grasp, grasp_pose, rot_z
+from d3grasp.envs.grasps import GraspPose, choose_grasp, grasp_pose, rot_z, wrap_angle
 from d3grasp.envs.scene import OBJECT_SOFT, palm_world_pose_to_free_q, palm_world_pose_to_root_q
 from d3grasp.vocabulary import GRASP_TYPES
 
@@ -175,16 +175,12 @@ def _plan_grasp(
     return place(pos, yaw, extents), yaw, place
 
 
-def _wrap(angle: float) -> float:
-    return math.atan2(math.sin(angle), math.cos(angle))
-
-
 def _nearer_end(true_yaw: float, planned_yaw: float) -> float:
     """Of the true yaw and its half-turn twin the one nearer the planned yaw: a box fit cannot tell
     an object's two ends apart (GraspPlan.align_yaw), and a wrist that turns by up to a few tenths of
     a radian corrects a small turn, not a half turn."""
-    twin = _wrap(true_yaw + math.pi)
-    return min((true_yaw, twin), key=lambda y: abs(_wrap(y - planned_yaw)))
+    twin = wrap_angle(true_yaw + math.pi)
+    return min((true_yaw, twin), key=lambda y: abs(wrap_angle(y - planned_yaw)))
 
 
 def _pose_correction(planned: GraspPose, planned_yaw: float, true: GraspPose, true_yaw: float) -> np.ndarray:
@@ -192,7 +188,7 @@ def _pose_correction(planned: GraspPose, planned_yaw: float, true: GraspPose, tr
     onto the same grasp at the true pose (``true``, at ``true_yaw``, ``_nearer_end``): the palm's
     offset (m, world) and its turn about the vertical (rad), the wrist's axes
     (mdp.actions.move_wrist). The privileged teacher's target."""
-    return np.array([*(true.palm_pos - planned.palm_pos), _wrap(true_yaw - planned_yaw)])
+    return np.array([*(true.palm_pos - planned.palm_pos), wrap_angle(true_yaw - planned_yaw)])
 
 
 def _set_hand(env: GraspEnv, w: int, arrays: ModelArrays, gp: GraspPose) -> None:
@@ -335,6 +331,6 @@ def _perceive(
     pos = np.array([xy[0], xy[1], est.centre[2]])  # the body origin is the box's centre: half its height
     env.loc_records[w].update(
         loc_registered_xy=float(np.linalg.norm(xy - np.asarray(obj_pos)[:2])),
-        loc_registered_yaw=float(abs(_wrap(body_yaw - yaw))),
+        loc_registered_yaw=float(abs(wrap_angle(body_yaw - yaw))),
     )
     return pos, body_yaw, np.array([body_ex[0], body_ex[1], est.extents[2]]), True
