@@ -144,9 +144,16 @@ def localisation_summary(episodes: list[dict]) -> dict[str, float] | None:
         "episodes": float(len(rows)),
         "failed": float(sum(not ep.get("loc_ok", True) for ep in rows)),
     }
-    for key in ("loc_error", "loc_error_xy", "loc_extent_error", "loc_registered_xy"):
-        v = 1000.0 * np.asarray([float(ep[key]) for ep in rows if ep.get(key) is not None])
-        if len(v):
+    # Every camera episode has the box fit's errors; only registered ones the registered error.
+    registered = [ep for ep in rows if ep.get("loc_registered_xy") is not None]
+    for key, eps in (
+        ("loc_error", rows),
+        ("loc_error_xy", rows),
+        ("loc_extent_error", rows),
+        ("loc_registered_xy", registered),
+    ):
+        if eps:
+            v = 1000.0 * np.asarray([float(ep[key]) for ep in eps])
             out[f"{key}_mean_mm"] = float(v.mean())
             out[f"{key}_p95_mm"] = float(np.percentile(v, 95.0))
     return out
