@@ -231,6 +231,9 @@ class CameraConfig:
     # the planner knows the mesh it planned on, and a fit round a cross, a mug or an L-shape is off
     # its body frame by the same turn and offset every time. False: the fit's centre and yaw as seen.
     register_footprint: bool = True
+    # Of the turns whose footprints match alike (a blob's two ends), keep the one whose top surface
+    # matches the seen heights (vision/footprint.py). False: the smallest yaw of them, as at first.
+    register_heights: bool = True
 
 
 @dataclass

@@ -13,13 +13,15 @@ The object's mesh is known (its grasps are planned on it), so its footprint seen
 model's footprint over the pixels the camera saw: the centroids coincide, and the yaw is the one,
 of a search over the full turn, with the smallest two-way distance between the seen points and the
 model's area and outline. Turns the shape cannot tell apart (a box's half turn, a cross's quarter
-turns, any turn of a round object) score alike; of those the smallest yaw is kept, as before.
+turns, any turn of a round object) score alike. Of those, the one whose heights match what the
+camera saw (the model's top surface against each seen cell's highest pixel) is kept when it matches
+clearly better, which tells a blob's taller end from its lower one; otherwise the smallest yaw.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -37,6 +39,11 @@ MAX_POINTS = 800  # seen cells and outline cells scored (an even subsample beyon
 SCAN_POINTS = 200  # of those, in the full-turn scan
 SEEN_CELL = 0.003  # m, the grid the seen points are counted on (the camera's pixel: ~2.3 mm at the table)
 SHIFT_RANGE = 0.006  # m, the search round the centroids' alignment, each way
+# m of height mismatch by which one of the turns that score alike must beat the smallest yaw to be
+# kept: the camera's depth noise (~1.3 mm a pixel) averages to ~0.1 mm over the ~100 cells of a
+# small object, and a turn that puts a blob's ends the wrong way round misses by several millimetres
+# where the ends differ.
+HEIGHT_TIE = 0.001
 
 
 @dataclass(frozen=True)
@@ -48,6 +55,9 @@ class Footprint:
     outside: np.ndarray  # (nx, ny) m, each cell's distance to the footprint (0 inside)
     outline: np.ndarray  # (m, 2) m, cells on the footprint's edge
     centroid: np.ndarray  # (2,) m, the area's centroid
+    # (nx, ny) m, the top surface's height above the object's lowest point (NaN off the footprint);
+    # None for pieces given without heights
+    top: np.ndarray | None = None
 
 
 def _rot2(a: float) -> np.ndarray:
@@ -58,24 +68,31 @@ def footprint_of_pieces(pieces: list[np.ndarray], cell: float = RASTER_CELL) -> 
     """The footprint of an object made of convex ``pieces`` ((n, 2+) body-frame points each, their
     convex hulls the collision pieces): the union of the pieces' outlines from above, drawn on a
     grid of ``cell`` (overlapping hulls count once)."""
-    pts = [np.asarray(p, dtype=np.float64)[:, :2] for p in pieces if len(p)]
-    if not pts:
+    full = [np.asarray(p, dtype=np.float64) for p in pieces if len(p)]
+    if not full:
         raise ValueError("a footprint needs at least one piece with points")
+    pts = [p[:, :2] for p in full]
+    with_z = all(p.shape[1] >= 3 for p in full)
     every = np.concatenate(pts)
     lo, hi = every.min(axis=0) - 2.0 * cell, every.max(axis=0) + 2.0 * cell
     gx = np.arange(lo[0] + 0.5 * cell, hi[0], cell)
     gy = np.arange(lo[1] + 0.5 * cell, hi[1], cell)
     grid = np.stack(np.meshgrid(gx, gy, indexing="ij"), axis=-1).reshape(-1, 2)
     inside = np.zeros(len(grid), dtype=bool)
-    for p in pts:
+    top = np.full(len(grid), -np.inf)
+    for p, p3 in zip(pts, full, strict=True):
         try:
             eq = ConvexHull(p).equations  # inside: normal . x + offset <= 0 for every facet
         except (QhullError, ValueError):
             continue  # a flat piece (a line from above) covers no area
-        inside |= np.all(grid @ eq[:, :2].T + eq[:, 2] <= 1e-12, axis=1)
+        here = np.all(grid @ eq[:, :2].T + eq[:, 2] <= 1e-12, axis=1)
+        inside |= here
+        if with_z and here.any():
+            top[here] = np.maximum(top[here], _top_of_hull(p3[:, :3], grid[here]))
     if not inside.any():
         raise ValueError("the pieces cover no area seen from above")
     mask = inside.reshape(len(gx), len(gy))
+    bottom = min(float(p[:, 2].min()) for p in full) if with_z else 0.0
     edge = mask & ~ndimage.binary_erosion(mask)
     outline = grid[edge.reshape(-1)]
     if len(outline) > MAX_POINTS:
@@ -86,7 +103,22 @@ def footprint_of_pieces(pieces: list[np.ndarray], cell: float = RASTER_CELL) -> 
         outside=ndimage.distance_transform_edt(~mask) * cell,
         outline=outline,
         centroid=grid[inside].mean(axis=0),
+        top=np.where(inside, top - bottom, np.nan).reshape(mask.shape) if with_z else None,
     )
+
+
+def _top_of_hull(points: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Height (body z) of the top of the convex hull of ``points`` (n, 3) above each of ``xy`` (m, 2),
+    which lie inside the hull's outline from above: the lowest of its upward facets' planes there
+    (inside, ``n . p + d <= 0`` for each facet, so ``z <= -(d + n_x x + n_y y) / n_z`` where n_z > 0).
+    A hull flat in z (a sheet) is its highest point."""
+    try:
+        eq = ConvexHull(points).equations
+    except (QhullError, ValueError):
+        return np.full(len(xy), float(points[:, 2].max()))
+    up = eq[eq[:, 2] > 1e-9]
+    planes = -(up[:, 3][None, :] + xy @ up[:, :2].T) / up[:, 2][None, :]
+    return np.minimum(planes.min(axis=1), float(points[:, 2].max()))
 
 
 def _score(ref: Footprint, seen: np.ndarray, tree: cKDTree, yaw: float, shift: np.ndarray) -> float:
@@ -103,8 +135,29 @@ def _score(ref: Footprint, seen: np.ndarray, tree: cKDTree, yaw: float, shift: n
     return float(outside.mean() + unseen.mean())
 
 
+def _height_mismatch(ref: Footprint, cells_xy: np.ndarray, cells_top: np.ndarray, yaw: float) -> float:
+    """Mean absolute difference (m) between the seen cells' highest pixels (``cells_top``, above the
+    table) and the model's top at ``yaw`` (``cells_xy`` centred on their centroid), after removing
+    their median difference: a shared offset (the table's height, the object's lowest point hidden)
+    does not count, a turn that puts the tall end where the camera saw the low one does. Mean, not
+    median, so that a difference over a third of the object (one end) counts. Inf with no overlap."""
+    body = cells_xy @ _rot2(yaw) + ref.centroid
+    ij = np.floor((body - ref.origin) / ref.cell).astype(np.int64)
+    on = np.all((ij >= 0) & (ij < np.array(ref.top.shape)), axis=1)
+    model = np.full(len(body), np.nan)
+    model[on] = ref.top[ij[on, 0], ij[on, 1]]
+    both = np.isfinite(model)
+    if both.sum() < 3:
+        return math.inf
+    diff = cells_top[both] - model[both]
+    return float(np.mean(np.abs(diff - np.median(diff))))
+
+
 def register(
-    seen_points: np.ndarray, ref: Footprint, tie: float = REGISTER_TIE
+    seen_points: np.ndarray,
+    ref: Footprint,
+    tie: float = REGISTER_TIE,
+    heights: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """The body pose that lays ``ref`` over ``seen_points`` ((n, 2+) world, the footprint the camera
     saw): (origin (2,) world, yaw, extents (2,) of the seen points along the body's axes).
@@ -112,9 +165,10 @@ def register(
     The seen points are first reduced to the cells of a SEEN_CELL grid they fall in: walls facing the
     camera put many pixels on a thin strip of the footprint, and counting each cell once keeps its
     centroid the area's. Then a full-turn scan of the yaw with the centroids together, a search of
-    the shift round that (up to SHIFT_RANGE each way), and a finer yaw."""
+    the shift round that (up to SHIFT_RANGE each way), and a finer yaw. ``heights`` ((n,) m, each seen
+    point's height above the table) choose among turns that score alike (module docstring)."""
     pts = np.asarray(seen_points, dtype=np.float64)[:, :2]
-    cells = np.unique(np.floor(pts / SEEN_CELL).astype(np.int64), axis=0)
+    cells, which = np.unique(np.floor(pts / SEEN_CELL).astype(np.int64), axis=0, return_inverse=True)
     seen_all = (cells + 0.5) * SEEN_CELL
     c = seen_all.mean(axis=0)
     seen = seen_all - c
@@ -123,13 +177,7 @@ def register(
     tree = cKDTree(seen)
     # The scan on a coarser subsample: it only has to land within a step of the best turn.
     few = seen[:: int(math.ceil(len(seen) / SCAN_POINTS))]
-    coarse = Footprint(
-        ref.origin,
-        ref.cell,
-        ref.outside,
-        ref.outline[:: int(math.ceil(len(ref.outline) / SCAN_POINTS))],
-        ref.centroid,
-    )
+    coarse = replace(ref, outline=ref.outline[:: int(math.ceil(len(ref.outline) / SCAN_POINTS))])
     few_tree = cKDTree(few)
     zero = np.zeros(2)
     yaws = np.arange(-math.pi, math.pi, YAW_STEP)
@@ -137,7 +185,17 @@ def register(
     # Local minima of the circular scan within ``tie`` of the best; the smallest |yaw| of them.
     minima = (scores <= np.roll(scores, 1)) & (scores <= np.roll(scores, -1))
     picks = np.nonzero(minima & (scores <= scores.min() + tie))[0]
-    yaw = float(yaws[min(picks, key=lambda k: abs(yaws[k]))])
+    pick = min(picks, key=lambda k: abs(yaws[k]))
+    if len(picks) > 1 and heights is not None and ref.top is not None:
+        # Each cell's highest pixel: pixels on walls facing the camera project inside the outline
+        # at heights below the top surface above them.
+        cells_top = np.full(len(cells), -np.inf)
+        np.maximum.at(cells_top, which.reshape(-1), np.asarray(heights, dtype=np.float64))
+        mismatch = {k: _height_mismatch(ref, seen_all - c, cells_top, float(yaws[k])) for k in picks}
+        best = min(picks, key=lambda k: mismatch[k])
+        if mismatch[best] < mismatch[pick] - HEIGHT_TIE:
+            pick = best
+    yaw = float(yaws[pick])
     shift = zero
     for step in (SHIFT_RANGE / 3.0, SHIFT_RANGE / 12.0):  # a 7 x 7 grid, then a finer 7 x 7 round its best
         ticks = np.arange(-3, 4) * step

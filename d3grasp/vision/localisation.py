@@ -46,6 +46,7 @@ class ObjectEstimate:
     ok: bool = True  # False: no object found, the fields hold the fallback
     # (n, 3) world: the object's pixels projected onto the table plane (its footprint as seen)
     footprint: np.ndarray | None = None
+    footprint_heights: np.ndarray | None = None  # (n,) m, those pixels' heights above the plane
 
 
 def fit_plane_ransac(
@@ -205,4 +206,5 @@ def localise_object(
         table_offset=offset,
         ok=True,
         footprint=obj - np.outer(heights, normal),
+        footprint_heights=heights,
     )

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from d3grasp.envs.config import CameraConfig
+from d3grasp.envs.grasps import wrap_angle
 from d3grasp.vision.camera import (
     CameraIntrinsics,
     add_depth_noise,
@@ -255,10 +256,14 @@ def test_env_camera_perception_records_localisation_error():
 # body origin is the centre of the axis-aligned bounding box, as the asset authoring makes it.
 L_SHAPE = [((0.0, -0.02), (0.05, 0.01, 0.02)), ((-0.04, 0.01), (0.01, 0.02, 0.02))]
 PLUS = [((0.0, 0.0), (0.045, 0.01, 0.02)), ((0.0, 0.0), (0.01, 0.045, 0.02))]
+# A step: an 8 x 3 cm rectangle from above, whose half turn is the same footprint, 4 cm tall at one
+# end and 2 cm at the other; only the heights tell its ends apart.
+STEP = [((-0.02, 0.0), (0.02, 0.015, 0.02)), ((0.02, 0.0), (0.02, 0.015, 0.01))]
 
 
 def _box_corners(centre_xy, half) -> np.ndarray:
-    c = np.array([centre_xy[0], centre_xy[1], 0.0])
+    """An upright box standing on z = 0, as the cast puts it."""
+    c = np.array([centre_xy[0], centre_xy[1], half[2]])
     return np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)]) * np.asarray(half) + c
 
 
@@ -276,6 +281,15 @@ def _camera():
     cfg = CameraConfig()
     intr = CameraIntrinsics.from_fov(cfg.width, cfg.height, math.radians(cfg.fov_deg))
     return intr, look_at_pose(np.asarray(cfg.position), np.asarray(cfg.target))
+
+
+def _seen_and_model(boxes, origin, yaw):
+    """The camera's estimate of the union of ``boxes`` at body pose (origin, yaw), noise-free, and
+    the footprint of the same boxes in their body frame."""
+    intr, pose = _camera()
+    depth = _cast_boxes(intr, pose, boxes, origin, yaw)
+    est = localise_object(depth, intr, pose, np.random.default_rng(0))
+    return est, footprint_of_pieces([_box_corners(c, h) for c, h in boxes])
 
 
 def test_footprint_of_an_l_shape_matches_its_geometry():
@@ -302,11 +316,8 @@ def test_footprint_of_an_l_shape_matches_its_geometry():
 
 @pytest.mark.parametrize("yaw", [0.3, 2.5, -2.0])
 def test_register_finds_an_l_shapes_end_from_a_cast_depth_image(yaw):
-    intr, pose = _camera()
     origin = np.array([0.015, -0.01])
-    depth = _cast_boxes(intr, pose, L_SHAPE, origin, yaw)
-    est = localise_object(depth, intr, pose, np.random.default_rng(0))
-    ref = footprint_of_pieces([_box_corners(c, h) for c, h in L_SHAPE])
+    est, ref = _seen_and_model(L_SHAPE, origin, yaw)
     xy, got, extents = register(est.footprint, ref)
     assert abs(math.atan2(math.sin(got - yaw), math.cos(got - yaw))) < YAW_BOUND  # the full turn, not mod 180
     assert np.linalg.norm(xy - origin) < 2.0 * CENTRE_BOUND
@@ -314,13 +325,11 @@ def test_register_finds_an_l_shapes_end_from_a_cast_depth_image(yaw):
 
 
 def test_register_turns_a_plus_back_onto_its_arms():
-    intr, pose = _camera()
     yaw, origin = 0.2, np.array([-0.01, 0.012])
-    depth = _cast_boxes(intr, pose, PLUS, origin, yaw)
-    est = localise_object(depth, intr, pose, np.random.default_rng(0))
+    est, ref = _seen_and_model(PLUS, origin, yaw)
     # The box fit round a plus lies at 45 degrees to its arms: the raw estimate is as wrong as it can be.
     assert localisation_error(est, np.r_[origin, 0.02], yaw, np.array([0.09, 0.09, 0.04])).yaw > 0.6
-    xy, got, _ = register(est.footprint, footprint_of_pieces([_box_corners(c, h) for c, h in PLUS]))
+    xy, got, _ = register(est.footprint, ref)
     quarter = (got - yaw) % (0.5 * math.pi)
     assert min(quarter, 0.5 * math.pi - quarter) < YAW_BOUND  # its quarter turns are the same shape
     assert abs(got) <= 0.25 * math.pi + 1e-9  # of those, the smallest yaw
@@ -328,11 +337,49 @@ def test_register_turns_a_plus_back_onto_its_arms():
 
 
 def test_register_keeps_the_smaller_yaw_of_a_box_and_its_half_turn():
-    intr, pose = _camera()
-    box = [((0.0, 0.0), (0.04, 0.015, 0.02))]
     origin = np.array([0.005, 0.02])
-    depth = _cast_boxes(intr, pose, box, origin, 0.3 + math.pi)
-    est = localise_object(depth, intr, pose, np.random.default_rng(0))
-    xy, got, _ = register(est.footprint, footprint_of_pieces([_box_corners(c, h) for c, h in box]))
+    est, ref = _seen_and_model([((0.0, 0.0), (0.04, 0.015, 0.02))], origin, 0.3 + math.pi)
+    xy, got, _ = register(est.footprint, ref, heights=est.footprint_heights)  # level: no help
     assert got == pytest.approx(0.3, abs=YAW_BOUND)
+    assert np.linalg.norm(xy - origin) < 2.0 * CENTRE_BOUND
+
+
+def test_footprint_top_is_each_cells_height_above_the_lowest_point():
+    ref = footprint_of_pieces([_box_corners(c, h) for c, h in STEP])
+
+    def top(p):
+        ij = np.floor((np.asarray(p) - ref.origin) / ref.cell).astype(int)
+        return ref.top[ij[0], ij[1]]
+
+    assert top((-0.03, 0.005)) == pytest.approx(0.04, abs=1e-9)  # the tall end
+    assert top((0.03, -0.005)) == pytest.approx(0.02, abs=1e-9)  # the low end
+    assert np.isnan(top((0.0, 0.0165)))  # off the footprint (its grid keeps a 2 mm margin)
+    # A slanted piece: a wedge rising from 0 at x = 0 to 3 cm at x = 6 cm over a 4 cm wide base.
+    wedge = np.array(
+        [
+            [0, -0.02, 0],
+            [0, 0.02, 0],
+            [0.06, -0.02, 0],
+            [0.06, 0.02, 0],
+            [0.06, -0.02, 0.03],
+            [0.06, 0.02, 0.03],
+        ]
+    )
+    slope = footprint_of_pieces([wedge])
+    ij = np.floor((np.array([0.02, 0.0]) - slope.origin) / slope.cell).astype(int)
+    centre_x = slope.origin[0] + (ij[0] + 0.5) * slope.cell  # the cell's centre, where it is sampled
+    assert slope.top[ij[0], ij[1]] == pytest.approx(0.5 * centre_x, abs=1e-9)
+
+
+@pytest.mark.parametrize("yaw", [0.3, 0.3 - math.pi, 1.2 + math.pi])
+def test_register_tells_a_steps_ends_apart_by_their_heights(yaw):
+    origin = np.array([0.01, -0.005])
+    est, ref = _seen_and_model(STEP, origin, yaw)
+    # From above alone the half turn is the same shape: the smaller yaw of the two is kept.
+    _, flat, _ = register(est.footprint, ref)
+    smaller = min(yaw, wrap_angle(yaw + math.pi), key=abs)
+    assert abs(wrap_angle(flat - smaller)) < YAW_BOUND
+    # With the seen heights, the tall end goes where the camera saw it.
+    xy, got, _ = register(est.footprint, ref, heights=est.footprint_heights)
+    assert abs(wrap_angle(got - yaw)) < YAW_BOUND
     assert np.linalg.norm(xy - origin) < 2.0 * CENTRE_BOUND

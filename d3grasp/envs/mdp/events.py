@@ -327,7 +327,11 @@ def _perceive(
     env.loc_records[w] = {"perception": "camera", "loc_ok": bool(est.ok), **err.as_record()}
     if env.footprints is None or not est.ok:
         return est.centre, est.yaw, est.extents, False
-    xy, body_yaw, body_ex = register(est.footprint, env.footprints[w])
+    xy, body_yaw, body_ex = register(
+        est.footprint,
+        env.footprints[w],
+        heights=est.footprint_heights if env.cfg.camera.register_heights else None,
+    )
     pos = np.array([xy[0], xy[1], est.centre[2]])  # the body origin is the box's centre: half its height
     env.loc_records[w].update(
         loc_registered_xy=float(np.linalg.norm(xy - np.asarray(obj_pos)[:2])),
