@@ -245,6 +245,10 @@ class GraspEnvConfig:
     grasp_types: tuple[str, ...] = GRASP_TYPES
     grasp_mode: str = "rule"  # rule: the best type (file) or the size rule; sample: uniform per episode
     grasp_source: str = "file"  # see GRASP_SOURCES
+    # rad added to the yaw the grasp is placed at, whatever the pose came from. A study's knob: pi
+    # asks whether a grasp is the same grasp on an object turned by its symmetry's half turn, the
+    # turn a camera cannot see (docs/studies/camera_registration.md).
+    plan_yaw_offset: float = 0.0
     perception: str = "oracle"  # see PERCEPTION_MODES
     rule: BaselineConfig = field(default_factory=BaselineConfig)  # the rule, and the residual's prior
     action_mode: str = "synergy"  # see ACTION_MODES

@@ -129,3 +129,22 @@ def test_the_footprint_registered_to_is_the_boxs_own(camera_env):
     np.testing.assert_allclose(np.ptp(fp.outline, axis=0), ex, atol=2.0 * fp.cell)
     np.testing.assert_allclose(fp.centroid, 0.0, atol=fp.cell)
     assert fp.outside.min() == 0.0 and fp.outside.max() >= 2.0 * fp.cell
+
+
+def test_plan_yaw_offset_turns_the_planned_grasp_about_the_object():
+    """``plan_yaw_offset`` = pi (the study of symmetric turns): at the true pose, the planned palm read
+    in the object's frame turned by a half turn is the stored grasp's palm."""
+    env = _env(None, plan_yaw_offset=math.pi)
+    try:
+        plan = env.grasp_plan[BOX]
+        for w in range(env.num_envs):
+            obj_pos = env.object_start[w].double().numpy()
+            r_obj = _quat_to_matrix(env.t_body_q[env.i_obj_body][w].double().numpy()[3:])
+            yaw = math.atan2(r_obj[1, 0], r_obj[0, 0]) + math.pi
+            g = plan.grasps[GRASP_TYPES[int(env.grasp_id[w])]]
+            in_object = _rot_z(yaw).T @ (env.grasp_palm_pos[w].double().numpy() - obj_pos)
+            np.testing.assert_allclose(in_object, g.palm_pos, atol=2e-4)
+            planned_rot = _quat_to_matrix(env.grasp_palm_quat[w].double().numpy())
+            np.testing.assert_allclose(planned_rot, _rot_z(yaw) @ _quat_to_matrix(g.palm_quat), atol=2e-4)
+    finally:
+        env.close()

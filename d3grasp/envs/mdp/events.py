@@ -108,7 +108,13 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
         # The planner sees the camera's estimate; the truth only scores its error.
         plan_pos, plan_yaw, plan_ex, registered = _perceive(env, w, obj_pos, qz, yaw, ex, placed)
     pose, used_yaw, place = _plan_grasp(
-        env, w, e.id, plan_pos, plan_yaw, plan_ex, estimated=estimated and not registered
+        env,
+        w,
+        e.id,
+        plan_pos,
+        plan_yaw + cfg.plan_yaw_offset,
+        plan_ex,
+        estimated=estimated and not registered,
     )
     _set_hand(env, w, arrays, pose)
     env.pose_correction[w] = 0.0
