@@ -182,7 +182,8 @@ def register(
     zero = np.zeros(2)
     yaws = np.arange(-math.pi, math.pi, YAW_STEP)
     scores = np.array([_score(coarse, few, few_tree, y, zero) for y in yaws])
-    # Local minima of the circular scan within ``tie`` of the best; the smallest |yaw| of them.
+    # Local minima of the circular scan within ``tie`` of the best: the smallest |yaw| of them, unless
+    # the heights match another clearly better.
     minima = (scores <= np.roll(scores, 1)) & (scores <= np.roll(scores, -1))
     picks = np.nonzero(minima & (scores <= scores.min() + tie))[0]
     pick = min(picks, key=lambda k: abs(yaws[k]))
