@@ -57,6 +57,13 @@ PALM_FRONT_X = 0.138  # palm collider front face (m, palm frame)
 PALM_FACE_Z = 0.0335  # palm collider palmar face (m, palm frame)
 PALM_HALF_WIDTH = 0.0515  # palm collider half-extent along y (m)
 TABLE_CLEARANCE = 0.006  # m kept between the lowest hand collider and the table at the grasp pose
+DROP_GAP = 0.001  # m between an object's lowest point and the table where an episode places it
+
+
+def rest_height(extents: np.ndarray) -> float:
+    """Height of an upright object's centre (its body origin) above the table as the environment
+    places it: half its height, DROP_GAP up. The planner's trials place it the same way."""
+    return 0.5 * float(extents[2]) + DROP_GAP
 
 
 @dataclass(frozen=True)

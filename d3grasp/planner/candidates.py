@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from d3grasp.envs.grasps import GRASPS, PALM_FACE_Z, PALM_FRONT_X, ObjectGrasp, object_grasp
+from d3grasp.envs.grasps import GRASPS, PALM_FACE_Z, PALM_FRONT_X, ObjectGrasp, object_grasp, rest_height
 from d3grasp.vocabulary import GRASP_TYPES
 
 LOW_OBJECT = 0.05  # m: below this height the curling finger tips meet the table (envs/grasps.py)
@@ -63,11 +63,6 @@ def object_seed(seed: int, object_id: str) -> int:
     """A generator seed for one object: the planner's seed and the object's id, nothing else."""
     digest = hashlib.sha256(f"{seed}:{object_id}".encode()).digest()
     return int.from_bytes(digest[:8], "little")
-
-
-def rest_height(extents: np.ndarray) -> float:
-    """Height of an upright object's centre above the table as the environment places it."""
-    return 0.5 * float(extents[2]) + 0.001
 
 
 def candidates(

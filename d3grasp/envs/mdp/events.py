@@ -18,7 +18,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from d3grasp.envs.grasps import GraspPose, choose_grasp, grasp_pose, rot_z, wrap_angle
+from d3grasp.envs.grasps import GraspPose, choose_grasp, grasp_pose, rest_height, rot_z, wrap_angle
 from d3grasp.envs.scene import OBJECT_SOFT, palm_world_pose_to_free_q, palm_world_pose_to_root_q
 from d3grasp.vocabulary import GRASP_TYPES
 
@@ -95,7 +95,7 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
     ex = np.asarray(e.extents, dtype=np.float64)
     xy = env.rng.uniform(-rnd.object_xy, rnd.object_xy, 2) if rnd.enabled else np.zeros(2)
     yaw = float(env.rng.uniform(-rnd.object_yaw, rnd.object_yaw)) if rnd.enabled else 0.0
-    obj_pos = np.array([xy[0], xy[1], table + 0.5 * ex[2] + 0.001])
+    obj_pos = np.array([xy[0], xy[1], table + rest_height(ex)])
     qz = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
     soft = lay.object_kind[w] == OBJECT_SOFT
     p0, n = int(lay.particle_start[w]), int(lay.particle_count[w])
