@@ -104,6 +104,14 @@ def same_trials(old: PlannerConfig, new: PlannerConfig, rows: Sequence[dict[str,
     return True
 
 
+def _differing(old: Any, new: Any, prefix: str = "") -> list[str]:
+    """The dotted keys whose values differ between two planner records (``old`` may be anything)."""
+    if not isinstance(old, dict) or not isinstance(new, dict):
+        return [prefix or "the planner record"] if old != new else []
+    keys = sorted(set(old) | set(new))
+    return [d for k in keys for d in _differing(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else k)]
+
+
 def plan_unit(
     manifest: str, entries: Sequence[dict[str, Any]], cfg: PlannerConfig
 ) -> dict[str, dict[str, Any]]:
@@ -201,6 +209,17 @@ def plan_grasps(
     earlier: tuple[PlannerConfig, dict[str, Any]] | None = None  # a plan of other settings
     if path.is_file():
         old = read_grasp_file(path)
+        others = sorted(set(old["objects"]) - {e.id for e in entries})
+        if old.get("planner") != settings and others:
+            # The file records one planner setting for all its objects: written under these, it would
+            # keep the selection only. Refused before any trial runs, nothing of the old plan lost.
+            changed = ", ".join(_differing(old.get("planner"), settings))
+            raise ValueError(
+                f"{path}: planned under other planner settings ({changed}); "
+                f"planning {len(entries)} of its objects under these would drop the plans of the "
+                f"{len(others)} others ({', '.join(others[:3])}{', ...' if len(others) > 3 else ''}): "
+                "plan the whole library (no --ids), or with the settings it records"
+            )
         if old.get("planner") == settings:
             data["objects"] = old["objects"]
         elif (old_cfg := config_of_record(old.get("planner") or {})) is not None:

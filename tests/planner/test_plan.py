@@ -8,12 +8,14 @@ import shutil
 from dataclasses import asdict, replace
 from pathlib import Path
 
+import pytest
+
 from d3grasp.authoring.manifest import read_manifest
 from d3grasp.envs.baseline import BaselineConfig
 from d3grasp.envs.config import SimConfig
 from d3grasp.envs.grasp_file import grasp_file_path, load_grasp_plan, read_grasp_file
 from d3grasp.paths import default_manifest
-from d3grasp.planner.plan import PlannerConfig, config_of_record, plan_grasps, same_trials
+from d3grasp.planner.plan import PlannerConfig, _differing, config_of_record, plan_grasps, same_trials
 from d3grasp.planner.score import trial_score
 
 BOX = "box_01"  # 9.5 x 3.4 x 6.6 cm, 138 g: the top hook and the side wrap both lift it (measured)
@@ -93,3 +95,30 @@ def test_a_composite_is_replanned_when_its_candidates_change() -> None:
     assert not same_trials(before, cfg, [ell])
     assert same_trials(before, cfg, [lone])
     assert config_of_record({"seed": 0}) is None  # not a record this planner can read back
+
+
+def test_planning_some_objects_under_new_settings_refuses_to_drop_the_others(tmp_path: Path) -> None:
+    # A library of two objects whose grasp file was planned with seed 1: replanning one of them with
+    # seed 0 would write a file of seed 0 holding that one only.
+    ids = [BOX, "box_02"]
+    manifest = json.loads(default_manifest().read_text())
+    manifest["assets"] = [a for a in manifest["assets"] if a["id"] in ids]
+    path = tmp_path / "manifest.json"
+    path.write_text(json.dumps(manifest))
+    shipped = read_grasp_file(grasp_file_path(default_manifest()))
+    old = {**shipped, "planner": PlannerConfig(seed=1).record()}
+    old["objects"] = {i: shipped["objects"][i] for i in ids}
+    grasps = grasp_file_path(path)
+    grasps.write_text(json.dumps(old))
+    before = grasps.read_bytes()
+    with pytest.raises(ValueError, match=r"\(seed\).*the 1 others \(box_02\)"):
+        plan_grasps(path, [BOX], PlannerConfig(seed=0), progress=False)
+    assert grasps.read_bytes() == before  # refused before anything ran or was written
+
+
+def test_differing_names_the_changed_settings() -> None:
+    old = {"seed": 1, "candidates": {"per_type": 10, "types": ["top"]}, "finalists": 2}
+    new = {"seed": 1, "candidates": {"per_type": 5, "types": ["top"]}, "finalists": 2, "extra": 0}
+    assert _differing(old, new) == ["candidates.per_type", "extra"]
+    assert _differing(None, new) == ["the planner record"]
+    assert _differing(new, new) == []
