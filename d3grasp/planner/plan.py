@@ -209,8 +209,9 @@ def plan_grasps(
     earlier: tuple[PlannerConfig, dict[str, Any]] | None = None  # a plan of other settings
     if path.is_file():
         old = read_grasp_file(path)
-        others = sorted(set(old["objects"]) - {e.id for e in entries})
-        if old.get("planner") != settings and others:
+        if old.get("planner") == settings:
+            data["objects"] = old["objects"]
+        elif others := sorted(set(old["objects"]) - {e.id for e in entries}):
             # The file records one planner setting for all its objects: written under these, it would
             # keep the selection only. Refused before any trial runs, nothing of the old plan lost.
             changed = ", ".join(_differing(old.get("planner"), settings))
@@ -220,8 +221,6 @@ def plan_grasps(
                 f"{len(others)} others ({', '.join(others[:3])}{', ...' if len(others) > 3 else ''}): "
                 "plan the whole library (no --ids), or with the settings it records"
             )
-        if old.get("planner") == settings:
-            data["objects"] = old["objects"]
         elif (old_cfg := config_of_record(old.get("planner") or {})) is not None:
             earlier = (old_cfg, old["objects"])
     sha = {e.id: asset_sha256(resolve_asset_path(manifest, e)) for e in entries}

@@ -23,9 +23,8 @@ from d3grasp.envs.grasp_file import (
     load_grasp_plan,
     without_prior,
 )
-from d3grasp.envs.grasps import object_grasp
+from d3grasp.envs.grasps import object_grasp, rest_height
 from d3grasp.paths import default_manifest
-from d3grasp.planner.candidates import rest_height
 
 BOX = "box_01"
 

@@ -8,14 +8,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from d3grasp.envs.grasps import GRASPS, ObjectGrasp, object_grasp
+from d3grasp.envs.grasps import GRASPS, ObjectGrasp, object_grasp, rest_height
 from d3grasp.planner.candidates import (
     MAX_PITCH,
     CandidateConfig,
     candidates,
     collision_pieces,
     perturbed,
-    rest_height,
 )
 
 
