@@ -42,12 +42,19 @@ class Controller:
 
 
 def make_controller(
-    env: Any, task: str, checkpoint: str | os.PathLike[str], device: str, data: dict | None = None
+    env: Any,
+    task: str,
+    checkpoint: str | os.PathLike[str],
+    device: str,
+    data: dict | None = None,
+    *,
+    trust: bool = False,
 ) -> Controller:
     """The controller of ``checkpoint`` (a path, ``"baseline"`` for the rule-based controller or
     ``"teacher"`` for the privileged teacher, d3grasp.policies.teacher).
 
-    ``data``: the checkpoint already read (``read_checkpoint``), to read it once.
+    ``data``: the checkpoint already read (``read_checkpoint``), to read it once. ``trust``: read it
+    even if it names code (``--trust-checkpoint``).
     """
     if str(checkpoint) == BASELINE:
         from d3grasp.envs.baseline import RuleBasedController
@@ -56,7 +63,7 @@ def make_controller(
         return Controller(RuleBasedController(env).act, lambda dones: None)
     if str(checkpoint) == TEACHER:
         return Controller(PoseTeacher(env).act, lambda dones: None)
-    actor = load_actor(env, task, checkpoint, device, data=data)
+    actor = load_actor(env, task, checkpoint, device, data=data, trust=trust)
     actor.reset()
     return Controller(
         act=lambda obs: actor(obs.to(device)),
@@ -66,7 +73,13 @@ def make_controller(
 
 
 def load_actor(
-    env: Any, task: str, checkpoint: str | os.PathLike[str], device: str, data: dict | None = None
+    env: Any,
+    task: str,
+    checkpoint: str | os.PathLike[str],
+    device: str,
+    data: dict | None = None,
+    *,
+    trust: bool = False,
 ) -> torch.nn.Module:
     """The checkpoint's actor for ``env``'s observations, in evaluation mode.
 
@@ -77,7 +90,7 @@ def load_actor(
     from rsl_rl.utils import resolve_class, resolve_obs_groups
 
     path = str(checkpoint)
-    data = read_checkpoint(Path(path), map_location=str(device)) if data is None else data
+    data = read_checkpoint(Path(path), map_location=str(device), trust=trust) if data is None else data
     infos = data.get("infos") or {}
     obs = env.get_observations()
     sizes = {str(k): int(obs[k].shape[-1]) for k in obs.keys()}  # noqa: SIM118 (TensorDict)

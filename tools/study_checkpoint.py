@@ -29,7 +29,7 @@ from pathlib import Path
 
 import torch
 
-from d3grasp.cli.args import parse_override
+from d3grasp.cli.args import add_trust_arg, parse_override
 from d3grasp.policies.checkpoint import atomic_torch_save, read_checkpoint
 
 
@@ -59,8 +59,9 @@ def main(argv: list[str] | None = None) -> int:
         metavar="KEY=VALUE",
         help="rewrite a policy-interface entry",
     )
+    add_trust_arg(p)
     args = p.parse_args(argv)
-    ckpt = read_checkpoint(args.checkpoint)
+    ckpt = read_checkpoint(args.checkpoint, trust=args.trust_checkpoint)
     actor = ckpt["actor_state_dict"]
     n = int(ckpt["infos"]["num_actions"])
     key = output_bias_key(actor, n)

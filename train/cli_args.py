@@ -8,7 +8,13 @@ import argparse
 import os
 from typing import Any
 
-from d3grasp.cli.args import add_env_override_arg, non_negative_int, parse_override, positive_int
+from d3grasp.cli.args import (
+    add_env_override_arg,
+    add_trust_arg,
+    non_negative_int,
+    parse_override,
+    positive_int,
+)
 from d3grasp.envs.config import PERCEPTION_MODES
 from d3grasp.envs.registry import DEFAULT_TASK
 
@@ -56,6 +62,7 @@ def add_common_args(parser: argparse.ArgumentParser) -> None:
         default="d3grasp.envs:make_env",
         help="advanced: 'module:function(task, num_envs, device, seed)' returning an rsl-rl VecEnv",
     )
+    add_trust_arg(parser)
 
 
 def make_train_parser() -> argparse.ArgumentParser:

@@ -84,6 +84,7 @@ def play(
     perception: str | None = None,
     pictures: PictureSettings | None = None,
     export_dir: str | os.PathLike[str] | None = None,
+    trust_checkpoint: bool = False,
 ) -> PlayResult:
     """Evaluate the checkpoint's deterministic policy until ``episodes`` episodes finished.
 
@@ -93,12 +94,14 @@ def play(
     (nothing to export or time). ``perception`` ("oracle" | "camera") overrides the task's; ``pictures``
     records a video, a USD animation and / or a tactile plot of the rollout. ``export_dir``: where
     the exports go (default ``exported/`` next to the checkpoint; for ``"shipped"``, ``exported/`` in
-    the current folder: the package's files stay as installed).
+    the current folder: the package's files stay as installed). ``trust_checkpoint``: read a file
+    that names code (``--trust-checkpoint``; refused otherwise).
     """
     get_task(task)
     is_baseline = str(checkpoint) == BASELINE
     ckpt = None if is_baseline else Path(resolve_checkpoint(str(checkpoint), task))  # "shipped" too
-    data = {} if ckpt is None else read_checkpoint(ckpt)  # a bad file fails here, before the env
+    # A bad or code-carrying file fails here, before the env is built.
+    data = {} if ckpt is None else read_checkpoint(ckpt, trust=trust_checkpoint)
     device = resolve_device(device, DistInfo())
     make = load_env_factory(env_factory) if isinstance(env_factory, str) else env_factory
     seed_everything(seed)
@@ -210,6 +213,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             max_steps=args.max_steps,
             perception=args.perception,
             export_dir=args.export_dir,
+            trust_checkpoint=args.trust_checkpoint,
             pictures=PictureSettings(
                 video=args.video,
                 video_fps=args.video_fps,

@@ -608,9 +608,13 @@ class D3GraspRunner(OnPolicyRunner):
         load_cfg: dict | None = None,
         strict: bool = True,
         map_location: str | None = None,
+        *,
+        trust: bool = False,
     ) -> dict:
-        """Load after checking the checkpoint fits this task; ``CheckpointError`` otherwise."""
-        data = read_checkpoint(path, map_location=map_location or str(self.device))
+        """Load after checking the checkpoint fits this task; ``CheckpointError`` otherwise. Read as
+        data through ``read_checkpoint`` (rsl-rl's own load unpickles anything); ``trust``: also a
+        file that names code (``--trust-checkpoint``)."""
+        data = read_checkpoint(path, map_location=map_location or str(self.device), trust=trust)
         load_cfg = load_cfg or {"actor": True, "critic": True, "optimizer": True, "iteration": True}
         models = tuple(m for m in ("actor", "critic") if load_cfg.get(m))
         self.check_compatible(data.get("infos"), str(path), models)

@@ -38,6 +38,7 @@ from d3grasp.cli.args import resolve_torch_threads, run_command  # noqa: E402
 from d3grasp.envs import close_env  # noqa: E402
 from d3grasp.envs.config import POLICY_INTERFACE  # noqa: E402
 from d3grasp.envs.registry import get_task  # noqa: E402
+from d3grasp.policies.checkpoint import refuse_code  # noqa: E402
 from d3grasp.seeding import seed_everything
 
 __all__ = [
@@ -219,6 +220,9 @@ def run_training(
 
     experiment_dir = Path(args.log_root) / train_cfg["experiment_name"]
     resume_path = resume_checkpoint(experiment_dir, args.load_run, args.checkpoint) if args.resume else None
+    trust = bool(getattr(args, "trust_checkpoint", False))
+    if resume_path is not None and not trust:
+        refuse_code(resume_path)  # a code-carrying file fails now, before the environment is built
 
     seed = int(args.seed) + dist.rank
     seed_everything(seed)
@@ -257,7 +261,7 @@ def run_training(
             env, train_cfg, log_dir=log_dir, device=device, task_name=args.task, env_builder=build_env
         )
         if resume_path is not None:
-            runner.load(str(resume_path))
+            runner.load(str(resume_path), trust=trust)
             print(f"[d3grasp] resumed from {resume_path} at iteration {runner.current_learning_iteration}")
         if log_dir is not None:
             train_cfg["resumed_from"] = None if resume_path is None else str(resume_path)

@@ -75,6 +75,19 @@ def add_env_override_arg(parser: argparse.ArgumentParser, help_text: str) -> Non
     )
 
 
+def add_trust_arg(parser: argparse.ArgumentParser) -> None:
+    """``--trust-checkpoint``: read checkpoints that name code (``d3grasp.policies.checkpoint``)."""
+    from d3grasp.policies.checkpoint import TRUST_FLAG
+
+    parser.add_argument(
+        TRUST_FLAG,
+        dest="trust_checkpoint",
+        action="store_true",
+        help="read a checkpoint that pickles objects other than tensors and plain values (older "
+        "files); unpickling them can run any code the file names: only for a file you trust",
+    )
+
+
 def resolve_torch_threads(requested: int | None) -> int:
     """Threads for this process: explicit, else 1.
 

@@ -24,7 +24,7 @@ from collections.abc import Sequence
 
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
-from d3grasp.cli.args import add_env_override_arg, parse_override, positive_int  # noqa: E402
+from d3grasp.cli.args import add_env_override_arg, add_trust_arg, parse_override, positive_int  # noqa: E402
 from d3grasp.envs.registry import DEFAULT_TASK  # noqa: E402
 from d3grasp.eval.evaluate import (  # noqa: E402
     BASELINE,
@@ -101,6 +101,7 @@ def make_parser() -> argparse.ArgumentParser:
         help="reuse the batches a stopped run into the same --out finished with the same settings and "
         "inputs (kept in OUT/.batches/ until the outputs are written); without it they are discarded",
     )
+    add_trust_arg(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
         "--verbose", action="store_true", help="also what Warp and rsl-rl report (module loads, models)"
@@ -134,6 +135,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         device=args.device,
         env_overrides=dict(args.overrides),
         perception=args.perception,
+        trust_checkpoint=args.trust_checkpoint,
     )
 
     def body() -> None:

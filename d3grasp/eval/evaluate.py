@@ -116,6 +116,8 @@ class EvalSettings:
     # oracle | camera | both (each controller under both, side by side) | paper (PERCEPTIONS)
     perception: str = "oracle"
     ablation: tuple[str, ...] = ()  # checkpoints of the ablation table, "PATH" or "TASK=PATH"
+    # Read checkpoints that name code (--trust-checkpoint); episodes do not depend on it.
+    trust_checkpoint: bool = False
 
     def validate(self) -> None:
         get_task(self.task)  # UnknownTaskError
@@ -225,7 +227,7 @@ def _task_from_run_folder(checkpoint: Path) -> str | None:
     return DEFAULT_TASK  # d3grasp-train without --task trains the default task
 
 
-def checkpoint_task(spec: str) -> tuple[str, str, dict[str, Any]]:
+def checkpoint_task(spec: str, trust: bool = False) -> tuple[str, str, dict[str, Any]]:
     """``(task, checkpoint path, checkpoint)`` of an ablation entry ``"PATH"`` or ``"TASK=PATH"``
     (the checkpoint as ``read_checkpoint`` loads it, read once).
 
@@ -242,7 +244,7 @@ def checkpoint_task(spec: str) -> tuple[str, str, dict[str, Any]]:
     path = rest if given is not None else spec
     if given is not None:
         get_task(given)
-    data = read_checkpoint(path)
+    data = read_checkpoint(path, trust=trust)
     infos = data.get("infos") or {}
     recorded = infos.get("task") or _task_from_run_folder(Path(path))
     if recorded is not None:
@@ -270,7 +272,7 @@ def run_specs(settings: EvalSettings) -> list[RunSpec]:
 
     if settings.ablation:
         entries = shipped_ablation() if settings.ablation == (SHIPPED,) else settings.ablation
-        resolved = [checkpoint_task(spec) for spec in entries]
+        resolved = [checkpoint_task(spec, settings.trust_checkpoint) for spec in entries]
         names = [_ablation_name(task) for task, _, _ in resolved]
         specs = []
         for (task, path, data), name in zip(resolved, names, strict=True):
@@ -286,7 +288,8 @@ def run_specs(settings: EvalSettings) -> list[RunSpec]:
     else:
         assert settings.checkpoint is not None  # validate() ensured it
         path = resolve_checkpoint(settings.checkpoint, settings.task)  # "shipped": the package's policy
-        data = read_checkpoint(path)  # a missing or unreadable file fails before any env is built
+        # A missing, unreadable or code-carrying file fails here, before any env is built.
+        data = read_checkpoint(path, trust=settings.trust_checkpoint)
         specs = [RunSpec("policy", settings.task, path, interface_overrides(data))]
     if settings.compare_baseline:
         specs.append(RunSpec(BASELINE, settings.task, BASELINE))
@@ -310,7 +313,9 @@ def _run_batch(
     # The same policy / baseline loader and episode loop as d3grasp-play and the grasp planner.
     from d3grasp.controllers import first_episodes, make_controller
 
-    controller = make_controller(env, run.task, run.checkpoint, settings.device)
+    controller = make_controller(
+        env, run.task, run.checkpoint, settings.device, trust=settings.trust_checkpoint
+    )
     return first_episodes(env, controller, on_episode)
 
 

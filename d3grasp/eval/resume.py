@@ -74,7 +74,8 @@ def batch_keys(
 
     manifest_path = Path(manifest) if manifest is not None else default_manifest()
     shared = {
-        "settings": asdict(settings),
+        # Whether code-carrying checkpoints may be read changes no episode: not part of the key.
+        "settings": {k: v for k, v in asdict(settings).items() if k != "trust_checkpoint"},
         "grasp_types": list(grasp_types),
         "manifest": str(manifest_path),
         "manifest_sha256": _file_sha256(manifest_path),

@@ -1,10 +1,19 @@
-"""Checkpoints and their contract: written atomically, read with one-line errors, and checked
-against the environment they are loaded into (task, observation sizes, action count and the
-settings that turn actions into joint targets) before any weights are touched."""
+"""Checkpoints and their contract: written atomically, read as data (never as code) with one-line
+errors, and checked against the environment they are loaded into (task, observation sizes, action
+count and the settings that turn actions into joint targets) before any weights are touched.
+
+A ``.pt`` file is a pickle, and unpickling may call any function the file names: a shared policy
+file could run a shell command on load. Every checkpoint is therefore read with
+``torch.load(weights_only=True)``, which rebuilds only tensors, containers and plain values, plus the
+few data types of ``DATA_TYPES``. A file that names anything else is refused in one line naming
+the type and ``--trust-checkpoint``, the flag that reads it the old, unsafe way.
+"""
 
 from __future__ import annotations
 
 import os
+import pathlib
+import pickle
 import re
 from pathlib import Path
 from typing import Any
@@ -14,20 +23,90 @@ import torch
 from d3grasp.files import atomic_write
 
 __all__ = [
+    "DATA_TYPES",
+    "TRUST_FLAG",
     "CheckpointError",
+    "UnsafeCheckpointError",
     "atomic_torch_save",
     "check_fits",
     "checkpoint_iteration",
     "latest_checkpoint",
     "observation_sizes",
     "read_checkpoint",
+    "refuse_code",
 ]
 
 CHECKPOINT_RE = re.compile(r"^model_(\d+)\.pt$")
 
 
+TRUST_FLAG = "--trust-checkpoint"
+"""The commands' flag that reads a checkpoint with ``weights_only=False`` (it may run code)."""
+
+
 class CheckpointError(ValueError):
     """A checkpoint that is missing, unreadable or trained for different observations."""
+
+
+class UnsafeCheckpointError(CheckpointError):
+    """A checkpoint that names a function or class outside ``DATA_TYPES``: reading it could run code."""
+
+
+def _numpy_data_types() -> list[Any]:
+    """NumPy's scalars, arrays and numeric dtypes: how a ``np.float64`` or an array in a record
+    pickles. Rebuilding them only copies bytes into memory."""
+    import numpy as np
+
+    try:  # NumPy 2 moved the module; 1.x still has it under np.core
+        from numpy._core import multiarray
+    except ImportError:  # pragma: no cover - NumPy 1.x
+        from numpy.core import multiarray  # type: ignore[no-redef]
+    dtype_classes = [
+        getattr(np.dtypes, name)
+        for name in dir(getattr(np, "dtypes", object()))
+        if name.endswith("DType") and not name.startswith(("Object", "Void", "StringDType"))
+    ]
+    return [multiarray.scalar, multiarray._reconstruct, np.ndarray, np.dtype, *dtype_classes]
+
+
+def _path_types() -> list[Any]:
+    """File paths (a run folder recorded as a ``Path``): a path object holds strings only."""
+    return [pathlib.PosixPath, pathlib.PurePosixPath, pathlib.WindowsPath, pathlib.PureWindowsPath]
+
+
+DATA_TYPES: tuple[Any, ...] = (*_numpy_data_types(), *_path_types())
+"""The non-tensor types a checkpoint may hold beside torch's own (tensors, dicts, lists, tuples,
+strings, numbers, ``None``): values, none of which runs code when rebuilt. d3grasp-train writes
+plain types only; these let a record that carries a NumPy value or a path load as data."""
+
+_DATA_TYPE_NAMES = {f"{t.__module__}.{t.__qualname__}" for t in DATA_TYPES}
+
+
+def _code_globals(path: Path) -> list[str]:
+    """The functions and classes the checkpoint's pickle names outside torch's safe set and
+    ``DATA_TYPES``, read from its opcodes without running any; [] for a legacy (non-zip) file,
+    which ``torch.load(weights_only=True)`` then judges."""
+    import torch
+
+    try:
+        names = torch.serialization.get_unsafe_globals_in_checkpoint(path)
+    except Exception:  # not a zip checkpoint: the weights-only unpickler decides below
+        return []
+    return [n for n in names if n not in _DATA_TYPE_NAMES]
+
+
+def _refusal(path: Path, names: list[str]) -> UnsafeCheckpointError:
+    what = ", ".join(names)
+    return UnsafeCheckpointError(
+        f"checkpoint {path} holds {what}, which is code, not data: loading it could run anything; "
+        f"refused (read a file you trust the source of with {TRUST_FLAG})"
+    )
+
+
+def refuse_code(path: str | os.PathLike[str]) -> None:
+    """Raise ``UnsafeCheckpointError`` if ``path`` names code (before an environment is built)."""
+    names = _code_globals(Path(path))
+    if names:
+        raise _refusal(Path(path), names)
 
 
 def atomic_torch_save(obj: Any, path: str | os.PathLike[str]) -> None:
@@ -57,13 +136,34 @@ def latest_checkpoint(run_dir: str | os.PathLike[str], pattern: str | None = Non
     return max(found, key=lambda p: checkpoint_iteration(p) or 0)
 
 
-def read_checkpoint(path: str | os.PathLike[str], map_location: str = "cpu") -> dict[str, Any]:
-    """Load a checkpoint dict, turning a missing or unreadable file into a one-line ``CheckpointError``."""
+def read_checkpoint(
+    path: str | os.PathLike[str], map_location: str = "cpu", *, trust: bool = False
+) -> dict[str, Any]:
+    """Load a checkpoint dict as data, turning a missing or unreadable file into a one-line
+    ``CheckpointError`` and a file that names code into an ``UnsafeCheckpointError``.
+
+    ``trust``: read it with ``weights_only=False`` (``--trust-checkpoint``), which runs whatever the
+    file names: only for a file from a source the user trusts (old checkpoints that pickled objects).
+    """
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
+    if not trust:
+        refuse_code(path)
     try:
-        data = torch.load(path, map_location=map_location, weights_only=False)
+        if trust:
+            data = torch.load(path, map_location=map_location, weights_only=False)
+        else:
+            # The weights-only unpickler is the guard; the scan above only names what it would refuse.
+            with torch.serialization.safe_globals(list(DATA_TYPES)):
+                data = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        # A legacy-format file the scan could not read: name the global the unpickler refused. Any
+        # other unpickling error is a broken file.
+        found = sorted(set(re.findall(r"GLOBAL ([\w.]+)", str(exc)))) if not trust else []
+        if found:
+            raise _refusal(path, found) from None
+        raise CheckpointError(f"cannot read checkpoint {path}: {type(exc).__name__}: {exc}") from None
     except Exception as exc:  # pickle / zip errors have many types
         raise CheckpointError(f"cannot read checkpoint {path}: {type(exc).__name__}: {exc}") from None
     if not isinstance(data, dict) or "actor_state_dict" not in data:
