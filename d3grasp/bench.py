@@ -1,4 +1,5 @@
-"""Benchmarks: ``python -m d3grasp.bench kernels``, ``env`` and ``train``; ``soak`` (see d3grasp.soak).
+"""Benchmarks: ``python -m d3grasp.bench kernels``, ``env`` and ``train``; ``soak`` (see d3grasp.soak);
+``shift``, the share of grasp outcomes a 1 mm whole-scene shift flips (see d3grasp.eval.shift).
 
 ``kernels`` times one launch of each batched kernel group for 1, 16 and 256 worlds with realistic
 sizes per world: 11 pads on a 20-shape hand+object, 2000 contact rows (1000 rigid + 1000 soft, half
@@ -317,6 +318,51 @@ def _add_soak_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_soak)
 
 
+def _cmd_shift(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from d3grasp.console import quiet_warp
+    from d3grasp.eval.shift import run_shift_benchmark
+
+    quiet_warp()
+    report = run_shift_benchmark(
+        shift_m=args.mm * 1e-3,
+        seeds=args.seeds,
+        split=args.split,
+        objects=args.objects,
+        num_envs=args.num_envs,
+        workers=args.workers,
+        overrides=dict(args.overrides),
+        progress=not args.no_progress,
+    )
+    print(report.summary())
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(report.to_json(), indent=1) + "\n", encoding="utf-8")
+        print(f"[bench shift] wrote {args.out}")
+    return 0
+
+
+def _add_shift_parser(sub: argparse._SubParsersAction) -> None:
+    from d3grasp.cli.args import add_env_override_arg, positive_float, positive_int
+
+    p = sub.add_parser(
+        "shift",
+        help="brittleness: the share of objects whose rule outcome a 1 mm whole-scene shift changes",
+    )
+    p.add_argument("--mm", type=positive_float, default=1.0, help="shift of the scene in mm (default 1)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="evaluation seeds (default 0)")
+    p.add_argument("--split", choices=("test", "train", "all"), default="test")
+    p.add_argument("--objects", default="diverse", help="diverse | deformable | all (default diverse)")
+    p.add_argument("--num_envs", type=positive_int, default=16, help="worlds per batch (default 16)")
+    p.add_argument("--workers", type=positive_int, default=None, help="processes (default: the cores)")
+    add_env_override_arg(p, "env config override for every run (not scene_shift)")
+    p.add_argument("--out", default=None, help="write the outcomes as JSON here")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_shift)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m d3grasp.bench", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -324,6 +370,7 @@ def main(argv: list[str] | None = None) -> int:
     _add_train_parser(sub)
     _add_env_parser(sub)
     _add_soak_parser(sub)
+    _add_shift_parser(sub)
     args = parser.parse_args(argv)
     if any(w < 1 for w in getattr(args, "worlds", [1])):
         parser.error("--worlds must be positive")

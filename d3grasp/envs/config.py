@@ -249,6 +249,12 @@ class GraspEnvConfig:
     # asks whether a grasp is the same grasp on an object turned by its symmetry's half turn, the
     # turn a camera cannot see (docs/studies/camera_registration.md).
     plan_yaw_offset: float = 0.0
+    # m (x, y) added to where every world's object is put, the grasp planned at the shifted pose: the
+    # whole scene (object and hand together) moved over the infinite table plane, which changes
+    # nothing physical. A study's knob for brittleness: an outcome it flips was decided by round-off
+    # (``python -m d3grasp.bench shift``; docs/studies/millimetre.md). With the camera, the camera
+    # stays where it is (the scene moves under it).
+    scene_shift: tuple[float, float] = (0.0, 0.0)
     perception: str = "oracle"  # see PERCEPTION_MODES
     rule: BaselineConfig = field(default_factory=BaselineConfig)  # the rule, and the residual's prior
     action_mode: str = "synergy"  # see ACTION_MODES

@@ -94,6 +94,7 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
     e = env.world_entries[w]
     ex = np.asarray(e.extents, dtype=np.float64)
     xy = env.rng.uniform(-rnd.object_xy, rnd.object_xy, 2) if rnd.enabled else np.zeros(2)
+    xy = xy + np.asarray(cfg.scene_shift, dtype=np.float64)  # the draws stay the same
     yaw = float(env.rng.uniform(-rnd.object_yaw, rnd.object_yaw)) if rnd.enabled else 0.0
     obj_pos = np.array([xy[0], xy[1], table + rest_height(ex)])
     qz = np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
