@@ -12,11 +12,14 @@ Submodules (import them directly; nothing here imports Warp):
 - :mod:`d3grasp.kernels.fem_elasticity` -- the soft objects' tet solve in closed form.
 - :mod:`d3grasp.kernels.particle_iteration` -- SolverVBD's soft iteration without its repeated passes.
 - :mod:`d3grasp.kernels.chebyshev` -- Chebyshev acceleration of the soft sweeps (off by default).
+- :mod:`d3grasp.kernels.grasp_energy` -- a differentiable force-closure grasp energy over the hand's
+  kinematics, many grasps at once (grasp synthesis by gradient descent).
 """
 
 __all__ = [
     "chebyshev",
     "fem_elasticity",
+    "grasp_energy",
     "observations",
     "particle_iteration",
     "rewards",
