@@ -7,6 +7,7 @@
     d3grasp-assets validate [DIR|MANIFEST] [--no-hand]
     d3grasp-assets list [DIR|MANIFEST]
     d3grasp-assets plan-grasps DIR|MANIFEST [--ids A,B] [--seed S] [--workers N] [--per-type K]
+                               [--schedule legacy|evaluation] [--final-trials N]
 
 Exit status: 0 success, 1 validation failure, 2 bad input (one line ``error: <file>: <reason>``;
 nothing written), 3 ``import --skip-invalid`` wrote some meshes and refused others (one line
@@ -165,7 +166,11 @@ def cmd_import(args: argparse.Namespace) -> int:
     if args.plan_grasps and result.entries:
         # The same treatment as a shipped object: candidate grasps scored in simulation.
         code = _plan_grasps(
-            Path(args.out) / "manifest.json", [e.id for e in result.entries], workers=args.workers
+            Path(args.out) / "manifest.json",
+            [e.id for e in result.entries],
+            workers=args.workers,
+            schedule=args.schedule,
+            final_trials=args.final_trials,
         )
         if code:
             return code
@@ -180,6 +185,27 @@ def cmd_import(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------------- plan-grasps
 
 
+def _add_schedule_args(p: argparse.ArgumentParser) -> None:
+    from d3grasp.cli.args import positive_int
+    from d3grasp.planner.plan import SCHEDULES
+
+    p.add_argument(
+        "--schedule",
+        choices=SCHEDULES,
+        default="legacy",
+        help="legacy: 3 trials per finalist without the evaluation's draws (the shipped plan); "
+        "evaluation: successive halving under the evaluation's draws, the camera's and the true "
+        "pose's placements and its 2 s pushes, each kept grasp with 16 trials and a measured rate",
+    )
+    p.add_argument(
+        "--final-trials",
+        type=positive_int,
+        default=None,
+        help="evaluation schedule: the last round's trials per kept grasp, the planning budget "
+        "(default 12: 16 trials in all; each costs ~3 screening trials)",
+    )
+
+
 def cmd_plan_grasps(args: argparse.Namespace) -> int:
     if args.path is None:
         # The plan is written next to the manifest it plans: with no library named that would be the
@@ -191,7 +217,15 @@ def cmd_plan_grasps(args: argparse.Namespace) -> int:
             "assets_usd/ of a source checkout to replan the shipped library"
         )
     ids = [i for i in args.ids.split(",") if i] if args.ids else None
-    return _plan_grasps(_resolve_manifest(args.path), ids, args.seed, args.workers, args.per_type)
+    return _plan_grasps(
+        _resolve_manifest(args.path),
+        ids,
+        args.seed,
+        args.workers,
+        args.per_type,
+        schedule=args.schedule,
+        final_trials=args.final_trials,
+    )
 
 
 def _plan_grasps(
@@ -200,6 +234,8 @@ def _plan_grasps(
     seed: int = 0,
     workers: int | None = None,
     per_type: int | None = None,
+    schedule: str = "legacy",
+    final_trials: int | None = None,
 ) -> int:
     """Plan ``ids`` (None: every object) of a library and print how many lifted and held."""
     from dataclasses import replace
@@ -207,7 +243,7 @@ def _plan_grasps(
     from d3grasp.console import quiet_warp
     from d3grasp.envs.grasp_file import GraspFileError, read_grasp_file
     from d3grasp.parallel import default_workers
-    from d3grasp.planner.plan import PlannerConfig, plan_grasps
+    from d3grasp.planner.plan import PlannerConfig, evaluation_planner, plan_grasps
 
     quiet_warp()
     if not manifest.is_file():
@@ -219,7 +255,13 @@ def _plan_grasps(
             f"{manifest.parent}: not writable, and grasps.json is written there; copy the library to a "
             "folder you can write and plan that copy (d3grasp-assets plan-grasps COPY)"
         )
-    cfg = PlannerConfig(seed=seed)
+    cfg = evaluation_planner(seed) if schedule == "evaluation" else PlannerConfig(seed=seed)
+    if final_trials is not None:
+        if schedule != "evaluation":
+            return _error(
+                "--final-trials sets the evaluation schedule's last round: give --schedule evaluation"
+            )
+        cfg = replace(cfg, final_trials=final_trials)
     if per_type is not None:
         cfg = replace(cfg, candidates=replace(cfg.candidates, per_type=per_type))
     t0 = time.perf_counter()
@@ -338,6 +380,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="processes for authoring and grasp planning (default: the machine's cores)",
     )
+    _add_schedule_args(p)
     p.set_defaults(func=cmd_import)
 
     p = sub.add_parser("validate", help="load every asset in Newton and check it against the manifest")
@@ -366,6 +409,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="candidate seed (same seed, same plan)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: the machine's cores)")
     p.add_argument("--per-type", type=int, default=None, help="candidates per grasp type (default 10)")
+    _add_schedule_args(p)
     p.set_defaults(func=cmd_plan_grasps)
     return ap
 

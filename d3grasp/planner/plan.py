@@ -1,12 +1,28 @@
 """Plan a library's grasps: candidates from each object's geometry, scored in simulation, the best of
 each grasp type kept with its measured score in the library's grasp file (``grasps.json``).
 
-Per object, two rounds in multi-world environments (``d3grasp.planner.score``):
+Two schedules (``PlannerConfig.schedule``), in multi-world environments (``d3grasp.planner.score``).
+
+``legacy`` (the shipped library's plan), two rounds without randomisation and with 0.3 s pushes:
 
 1. every candidate (``d3grasp.planner.candidates``) once, at the nominal placement;
 2. the best ``finalists`` of each type that lifted in round 1 again with the object displaced by a
    few millimetres and degrees (``PERTURBATIONS``); a finalist's score is the mean over its three
    trials, so a grasp that holds only at one exact placement loses to one that holds around it.
+
+``evaluation``: successive halving under the evaluation's own conditions (its draws of pose and
+sensor noise, the grasp placed by the true pose or by the camera, ``ScoringConfig.randomise``):
+
+1. every candidate once (the true pose), 0.3 s pushes: the screen;
+2. the best ``finalists`` of each type that lifted, ``screen_trials`` more (the camera first, then
+   alternating with the true pose), 0.3 s pushes; the best of each type by its mean trial score
+   goes on;
+3. that grasp ``final_trials`` more times at the evaluation's 2 s pushes, half under the camera and
+   half at the true pose. Its measured rate is the share of these final trials it held, stored with
+   the 95% Wilson interval; its score, by which the environment picks among the types, is the
+   interval's lower bound (plus a hundredth of its mean trial score to order equal bounds), so a
+   grasp that held 12 of 12 outranks one that held 3 of 3. Every kept grasp that lifted has
+   1 + ``screen_trials`` + ``final_trials`` trials (16 by default).
 
 Objects are planned in fixed groups (``objects_per_unit`` in library order) whatever the number of
 worker processes, so a plan is the same for a seed on any number of cores. The grasp file is
@@ -22,7 +38,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -45,13 +61,33 @@ from d3grasp.planner.score import ScoringConfig, Trial, run_trials, trial_enviro
 PERTURBATIONS: tuple[tuple[float, float, float], ...] = ((0.004, -0.003, 0.08), (-0.004, 0.003, -0.08))
 
 
+SCHEDULES: tuple[str, ...] = ("legacy", "evaluation")
+"""How candidates are tried and kept (module docstring)."""
+
+# The settings only the evaluation schedule has (a legacy record carries none of them).
+_EVALUATION_FIELDS = ("screen_trials", "final_trials", "final_push_seconds", "perceptions")
+
+
 @dataclass(frozen=True)
 class PlannerConfig:
     seed: int = 0
     candidates: CandidateConfig = field(default_factory=CandidateConfig)
     scoring: ScoringConfig = field(default_factory=ScoringConfig)
-    finalists: int = 2  # per grasp type, re-tried under the perturbations
+    finalists: int = 2  # per grasp type, re-tried under the perturbations (legacy) or screened again
     objects_per_unit: int = 4
+    schedule: str = "legacy"  # see SCHEDULES; evaluation_planner() makes the other
+    screen_trials: int = 3  # evaluation: round 2's trials per finalist
+    final_trials: int = 12  # evaluation: round 3's trials of each type's best
+    final_push_seconds: float = 2.0  # evaluation: round 3's pushes, the evaluation's (PhaseConfig)
+    perceptions: tuple[str, ...] = ("camera", "oracle")  # evaluation: rounds 2-3 alternate these
+
+    def __post_init__(self) -> None:
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"planner schedule must be one of {list(SCHEDULES)}, got '{self.schedule}'")
+        if self.schedule == "evaluation" and not self.scoring.randomise:
+            raise ValueError("the evaluation schedule scores with the evaluation's draws (scoring.randomise)")
+        if min(self.screen_trials, self.final_trials) < 1 or self.finalists < 1:
+            raise ValueError("finalists, screen_trials and final_trials must be >= 1")
 
     def record(self) -> dict[str, Any]:
         """What the grasp file records of the settings (a rerun with other settings replans)."""
@@ -59,8 +95,22 @@ class PlannerConfig:
         d["scoring"].pop("device", None)
         d.pop("objects_per_unit", None)
         d["candidates"]["types"] = list(d["candidates"]["types"])
-        d["perturbations"] = [list(p) for p in PERTURBATIONS]
+        if self.schedule == "legacy":  # recorded as before the schedules existed
+            for key in ("schedule", *_EVALUATION_FIELDS):
+                d.pop(key)
+            d["scoring"].pop("randomise")
+            d["perturbations"] = [list(p) for p in PERTURBATIONS]
+        else:
+            d["perceptions"] = list(d["perceptions"])
         return json.loads(json.dumps(d))
+
+
+def evaluation_planner(seed: int = 0, **changes: Any) -> PlannerConfig:
+    """The planner of the ``evaluation`` schedule (successive halving under the evaluation's draws)."""
+    # One object a unit: every core works whatever the number of objects (units of four planned four
+    # soft objects in one process), and an object's ~30 candidates still fill a multi-world batch.
+    changes = {"objects_per_unit": 1, **changes}
+    return PlannerConfig(seed=seed, schedule="evaluation", scoring=ScoringConfig(randomise=True), **changes)
 
 
 # What a grasp file recorded before a candidate setting existed: the behaviour it was planned with.
@@ -73,13 +123,19 @@ def config_of_record(record: dict[str, Any]) -> PlannerConfig | None:
     try:
         cand = {**CANDIDATES_BEFORE, **record["candidates"]}
         cand = {k: tuple(v) if isinstance(v, list) else v for k, v in cand.items()}
-        if [tuple(p) for p in record["perturbations"]] != list(PERTURBATIONS):
+        schedule = record.get("schedule", "legacy")
+        if schedule == "legacy" and [tuple(p) for p in record["perturbations"]] != list(PERTURBATIONS):
             return None
+        extra = {k: record[k] for k in _EVALUATION_FIELDS if schedule != "legacy"}
+        if "perceptions" in extra:
+            extra["perceptions"] = tuple(extra["perceptions"])
         return PlannerConfig(
             seed=record["seed"],
             candidates=CandidateConfig(**cand),
             scoring=ScoringConfig(**record["scoring"]),
             finalists=record["finalists"],
+            schedule=schedule,
+            **extra,
         )
     except (KeyError, TypeError, ValueError):
         return None
@@ -95,8 +151,8 @@ def _candidates_of(row: dict[str, Any], cfg: PlannerConfig) -> list[Any]:
 def same_trials(old: PlannerConfig, new: PlannerConfig, rows: Sequence[dict[str, Any]]) -> bool:
     """Whether planning the group ``rows`` under ``old`` and ``new`` runs the same trials (then it
     gives the same plan: a group's trials depend on nothing else)."""
-    if (old.seed, old.scoring, old.finalists) != (new.seed, new.scoring, new.finalists):
-        return False
+    if replace(old, candidates=new.candidates, objects_per_unit=new.objects_per_unit) != new:
+        return False  # any setting but the candidates' changes the trials
     for row in rows:
         a, b = _candidates_of(row, old), _candidates_of(row, new)
         if [g.to_json() for g in a] != [g.to_json() for g in b]:
@@ -112,6 +168,20 @@ def _differing(old: Any, new: Any, prefix: str = "") -> list[str]:
     return [d for k in keys for d in _differing(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else k)]
 
 
+ByType = dict[tuple[str, str], list[tuple[float, Trial, dict[str, Any]]]]
+"""Round 1's trials by (object, grasp type), in candidate order: (score, trial, record)."""
+
+
+def _finalists(entries: Sequence[dict[str, Any]], cfg: PlannerConfig, by_type: ByType) -> list[Any]:
+    """The best ``cfg.finalists`` of each object and type by round 1's score, those that lifted."""
+    finalists: list[tuple[float, Trial, dict[str, Any]]] = []
+    for e in entries:
+        for grasp_type in cfg.candidates.types:
+            mine = sorted(by_type.get((e["id"], grasp_type), []), key=lambda x: -x[0])
+            finalists += [x for x in mine[: cfg.finalists] if x[2]["s_lift"]]
+    return finalists
+
+
 def plan_unit(
     manifest: str, entries: Sequence[dict[str, Any]], cfg: PlannerConfig
 ) -> dict[str, dict[str, Any]]:
@@ -120,16 +190,84 @@ def plan_unit(
     for e in entries:
         trials += [Trial(e["id"], g) for g in _candidates_of(e, cfg)]
     records = run_trials(trials, manifest, cfg.scoring)
-    # Round 1's trials by object and grasp type, in candidate order.
-    by_type: dict[tuple[str, str], list[tuple[float, Trial, dict[str, Any]]]] = {}
+    by_type: ByType = {}
     for t, r in zip(trials, records, strict=True):
         by_type.setdefault((t.object_id, t.grasp.grasp), []).append((trial_score(r), t, r))
-    # Round 2: the finalists of each object and type, displaced.
-    finalists: list[tuple[float, Trial, dict[str, Any]]] = []
-    for e in entries:
-        for grasp_type in cfg.candidates.types:
-            mine = sorted(by_type.get((e["id"], grasp_type), []), key=lambda x: -x[0])
-            finalists += [x for x in mine[: cfg.finalists] if x[2]["s_lift"]]
+    if cfg.schedule == "evaluation":
+        out = _halving_rounds(manifest, entries, cfg, by_type)
+    else:
+        out = _legacy_rounds(manifest, entries, cfg, by_type)
+    _describe_unit(out, entries, cfg, by_type)
+    return out
+
+
+def _halving_rounds(
+    manifest: str, entries: Sequence[dict[str, Any]], cfg: PlannerConfig, by_type: ByType
+) -> dict[str, dict[str, Any]]:
+    """Rounds 2 and 3 of the evaluation schedule (module docstring): the kept grasp of each type."""
+    from d3grasp.eval.metrics import wilson_interval
+
+    views = cfg.perceptions
+    finalists = _finalists(entries, cfg, by_type)
+    screen = [
+        Trial(t.object_id, t.grasp, views[k % len(views)])
+        for _, t, _ in finalists
+        for k in range(cfg.screen_trials)
+    ]
+    screened = run_trials(screen, manifest, cfg.scoring, stream=1) if screen else []
+    # Each finalist's trials so far; the best of each object and type by its mean trial score.
+    best: dict[tuple[str, str], tuple[float, Trial, list[dict[str, Any]]]] = {}
+    n = cfg.screen_trials
+    for k, (s0, t, r0) in enumerate(finalists):
+        rs = [r0, *screened[k * n : (k + 1) * n]]
+        mean = float(np.mean([s0, *(trial_score(r) for r in rs[1:])]))
+        key = (t.object_id, t.grasp.grasp)
+        if key not in best or mean > best[key][0]:
+            best[key] = (mean, t, rs)
+    kept = list(best.values())
+    final = [
+        Trial(t.object_id, t.grasp, views[k % len(views)])
+        for _, t, _ in kept
+        for k in range(cfg.final_trials)
+    ]
+    full = replace(cfg.scoring, push_seconds=cfg.final_push_seconds)
+    finals = run_trials(final, manifest, full, stream=2) if final else []
+    out: dict[str, dict[str, Any]] = {e["id"]: {"grasps": {}} for e in entries}
+    m = cfg.final_trials
+    for k, (_, t, rs) in enumerate(kept):
+        mine = finals[k * m : (k + 1) * m]
+        mine_views = final[k * m : (k + 1) * m]
+        held = sum(int(r["s_disturb"]) for r in mine)
+        lo, hi = wilson_interval(held, m)
+        firmness = float(np.mean([trial_score(r) for r in mine]))
+        by_view = {
+            view: _counts([r for r, f in zip(mine, mine_views, strict=True) if f.perception == view])
+            for view in views
+        }
+        out[t.object_id]["grasps"][t.grasp.grasp] = {
+            **t.grasp.to_json(),
+            "score": round(lo + 0.01 * firmness, 4),
+            "rate": round(held / m, 4),
+            "rate_interval": [round(lo, 4), round(hi, 4)],
+            "trials": {**_counts([*rs, *mine]), "final": {"push_seconds": cfg.final_push_seconds, **by_view}},
+        }
+    return out
+
+
+def _counts(records: Sequence[dict[str, Any]]) -> dict[str, int]:
+    """Lifts and holds of some trials' records, and how many there were."""
+    return {
+        "lift": sum(int(r["s_lift"]) for r in records),
+        "disturb": sum(int(r["s_disturb"]) for r in records),
+        "of": len(records),
+    }
+
+
+def _legacy_rounds(
+    manifest: str, entries: Sequence[dict[str, Any]], cfg: PlannerConfig, by_type: ByType
+) -> dict[str, dict[str, Any]]:
+    """Round 2 of the legacy schedule: each finalist at the two ``PERTURBATIONS``, ranked by the mean."""
+    finalists = _finalists(entries, cfg, by_type)
     retries = [
         Trial(t.object_id, perturbed(t.grasp, (dx, dy), dyaw))
         for _, t, _ in finalists
@@ -137,7 +275,6 @@ def plan_unit(
     ]
     retry_records = run_trials(retries, manifest, cfg.scoring) if retries else []
     out: dict[str, dict[str, Any]] = {e["id"]: {"grasps": {}} for e in entries}
-    environment = trial_environment(cfg.scoring)  # the same for every object of the unit
     n = len(PERTURBATIONS)
     for k, (s0, t, r0) in enumerate(finalists):
         rs = [r0, *retry_records[k * n : (k + 1) * n]]
@@ -147,12 +284,17 @@ def plan_unit(
             out[t.object_id]["grasps"][t.grasp.grasp] = {
                 **t.grasp.to_json(),
                 "score": round(score, 4),
-                "trials": {
-                    "lift": sum(int(r["s_lift"]) for r in rs),
-                    "disturb": sum(int(r["s_disturb"]) for r in rs),
-                    "of": len(rs),
-                },
+                "trials": _counts(rs),
             }
+    return out
+
+
+def _describe_unit(
+    out: dict[str, dict[str, Any]], entries: Sequence[dict[str, Any]], cfg: PlannerConfig, by_type: ByType
+) -> None:
+    """Round 1's counts, the fallback of an object none of whose candidates lifted, and the settings
+    its trials ran under, into each object's record."""
+    environment = trial_environment(cfg.scoring)  # the same for every object of the unit
     for e in entries:
         oid = e["id"]
         mine_all = [x for g in cfg.candidates.types for x in by_type.get((oid, g), [])]
@@ -171,7 +313,6 @@ def plan_unit(
                         "trials": {"lift": 0, "disturb": 0, "of": 1},
                     }
         out[oid]["environment"] = environment
-    return out
 
 
 def plan_grasps(
