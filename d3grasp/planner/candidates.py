@@ -57,6 +57,11 @@ class CandidateConfig:
     front_top: tuple[float, float] = (0.0, 0.03)  # m, in front of the palm (the front face backs it)
     max_pieces: int = 4  # composite objects: placements on this many of the largest pieces
     min_piece: float = 0.02  # m: a piece's longest side below this is too small to close on
+    # Rigid objects: per type, this many grasps synthesised by descent on the force-closure energy
+    # over the object's convex hull (d3grasp.planner.synthesis), from synthesis_starts starts.
+    synthesised: int = 0
+    synthesis_starts: int = 32
+    synthesis_steps: int = 300
 
 
 def object_seed(seed: int, object_id: str) -> int:
@@ -72,12 +77,16 @@ def candidates(
     cfg: CandidateConfig | None = None,
     soft: bool = False,
     pieces: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+    hull: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[ObjectGrasp]:
     """The candidate grasps of an object of ``extents`` (its bounding box, object frame), in order:
-    per type the geometric placement first, then the drawn ones, then those on its pieces.
+    per type the geometric placement first, then the drawn ones, then those on its pieces, then
+    the synthesised ones.
 
     ``pieces``: (centre, extents) of each collision piece's bounding box in the object frame (the
-    frame of ``extents``' box centre), :func:`collision_pieces`; one piece or none adds nothing."""
+    frame of ``extents``' box centre), :func:`collision_pieces`; one piece or none adds nothing.
+    ``hull``: (points, triangles) of the object's convex hull in that frame (:func:`convex_hull`),
+    which ``cfg.synthesised`` needs (a soft object gets none)."""
     cfg = cfg or CandidateConfig()
     per_type = cfg.per_type_soft if soft else cfg.per_type
     ex = np.asarray(extents, dtype=np.float64)
@@ -117,7 +126,53 @@ def candidates(
             if g.feasible:
                 out.append(g)
         out += _piece_grasps(grasp, ex, h, pieces, cfg)
+        if cfg.synthesised and not soft and hull is not None:
+            out += _synthesised_grasps(grasp, hull, object_seed(seed, object_id), cfg)
     return out
+
+
+def _synthesised_grasps(
+    grasp: str, hull: tuple[np.ndarray, np.ndarray], seed: int, cfg: CandidateConfig
+) -> list[ObjectGrasp]:
+    """The ``cfg.synthesised`` lowest-energy grasps of the type on the hull (the table under it)."""
+    from d3grasp.planner.synthesis import synthesise
+
+    found = synthesise(
+        "mesh",
+        None,
+        grasp,
+        starts=cfg.synthesis_starts,
+        steps=cfg.synthesis_steps,
+        seed=seed % (2**32),
+        keep=cfg.synthesised,
+        mesh=hull,
+    )
+    return [g.to_object_grasp() for g in found]
+
+
+def convex_hull(usd_path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(points, triangles) of the convex hull of a rigid object's collision meshes, object frame."""
+    from pxr import Usd, UsdGeom
+    from scipy.spatial import ConvexHull
+
+    stage = Usd.Stage.Open(str(usd_path))
+    pts = [
+        np.asarray(UsdGeom.Mesh(prim).GetPointsAttr().Get(), dtype=np.float64)
+        for prim in stage.Traverse()
+        if prim.IsA(UsdGeom.Mesh) and prim.GetParent().GetName() == "collision"
+    ]
+    every = np.concatenate([p for p in pts if len(p)])
+    hull = ConvexHull(every)
+    used = np.unique(hull.simplices)
+    remap = np.full(len(every), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    faces = remap[hull.simplices]
+    # Outward winding: each triangle's normal points away from the hull's centre.
+    centre = every[used].mean(axis=0)
+    a, b, c = (every[hull.simplices[:, k]] for k in range(3))
+    flip = np.einsum("ij,ij->i", np.cross(b - a, c - a), a - centre) < 0.0
+    faces[flip] = faces[flip][:, [0, 2, 1]]
+    return every[used], faces.astype(np.int32)
 
 
 def _piece_grasps(

@@ -53,7 +53,7 @@ from d3grasp.envs.grasp_file import (
     read_grasp_file,
 )
 from d3grasp.parallel import run_units
-from d3grasp.planner.candidates import CandidateConfig, candidates, collision_pieces, perturbed
+from d3grasp.planner.candidates import CandidateConfig, candidates, collision_pieces, convex_hull, perturbed
 from d3grasp.planner.score import ScoringConfig, Trial, run_trials, trial_environment, trial_score
 
 # Object displaced by (dx, dy) m and turned by dyaw rad from where the planner thinks it is: the
@@ -95,6 +95,9 @@ class PlannerConfig:
         d["scoring"].pop("device", None)
         d.pop("objects_per_unit", None)
         d["candidates"]["types"] = list(d["candidates"]["types"])
+        if not self.candidates.synthesised:  # recorded as before synthesis existed
+            for key in ("synthesised", "synthesis_starts", "synthesis_steps"):
+                d["candidates"].pop(key)
         if self.schedule == "legacy":  # recorded as before the schedules existed
             for key in ("schedule", *_EVALUATION_FIELDS):
                 d.pop(key)
@@ -114,7 +117,7 @@ def evaluation_planner(seed: int = 0, **changes: Any) -> PlannerConfig:
 
 
 # What a grasp file recorded before a candidate setting existed: the behaviour it was planned with.
-CANDIDATES_BEFORE: dict[str, Any] = {"max_pieces": 0}
+CANDIDATES_BEFORE: dict[str, Any] = {"max_pieces": 0, "synthesised": 0}
 
 
 def config_of_record(record: dict[str, Any]) -> PlannerConfig | None:
@@ -145,7 +148,8 @@ def _candidates_of(row: dict[str, Any], cfg: PlannerConfig) -> list[Any]:
     """The candidates of a unit's object row (id, kind, extents, pieces) under ``cfg``."""
     pieces = [(np.asarray(c), np.asarray(x)) for c, x in row.get("pieces", ())]
     soft = row["kind"] == "deformable"
-    return candidates(row["id"], np.asarray(row["extents"]), cfg.seed, cfg.candidates, soft, pieces)
+    hull = (np.asarray(row["hull"][0]), np.asarray(row["hull"][1])) if row.get("hull") else None
+    return candidates(row["id"], np.asarray(row["extents"]), cfg.seed, cfg.candidates, soft, pieces, hull)
 
 
 def same_trials(old: PlannerConfig, new: PlannerConfig, rows: Sequence[dict[str, Any]]) -> bool:
@@ -398,6 +402,12 @@ def plan_grasps(
                 ]
                 if e.kind == "rigid"
                 else [],
+                # The convex hull the synthesised candidates are descended on (only when asked for).
+                "hull": (
+                    tuple(a.tolist() for a in convex_hull(resolve_asset_path(manifest, e)))
+                    if e.kind == "rigid" and cfg.candidates.synthesised
+                    else None
+                ),
             }
             for e in mine
         ]

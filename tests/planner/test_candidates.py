@@ -175,3 +175,30 @@ def test_a_composite_gets_each_type_placed_on_its_pieces(tmp_path) -> None:
         assert all(any(holds_bar_as_lone(g, c, bar) for g in mine) for c, bar in boxes)
     # A single piece adds nothing.
     assert len(candidates("ell", ex, 0, pieces=boxes[:1])) == len(plain)
+
+
+def test_synthesised_candidates_follow_the_geometric_ones_on_the_hull() -> None:
+    """``synthesised=1``: one grasp per type descended on the convex hull (a 6 x 4 x 8 cm box's
+    corners here, outward winding) after the geometric placement; the synthesis is seeded by the
+    object, so the candidates repeat."""
+    from dataclasses import replace
+
+    from scipy.spatial import ConvexHull
+
+    from d3grasp.planner.candidates import CandidateConfig, candidates
+
+    half = np.array([0.03, 0.02, 0.04])
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
+    tri = ConvexHull(corners).simplices
+    a, b, c = (corners[tri[:, k]] for k in range(3))
+    flip = np.einsum("ij,ij->i", np.cross(b - a, c - a), a) < 0.0
+    tri[flip] = tri[flip][:, [0, 2, 1]]
+    cfg = replace(CandidateConfig(), per_type=1, synthesised=1, synthesis_starts=8, synthesis_steps=60)
+    first = candidates("boxy", 2.0 * half, 0, cfg, hull=(corners, tri.astype(np.int32)))
+    assert [g.grasp for g in first] == ["top", "top", "side", "side", "pinch", "pinch"]
+    for g in first[1::2]:
+        assert abs(np.linalg.norm(g.palm_quat) - 1.0) < 1e-6
+        assert all(abs(a) <= 0.35 + 1e-6 for a in g.preshape[:3])  # the abduction joints' range
+    again = candidates("boxy", 2.0 * half, 0, cfg, hull=(corners, tri.astype(np.int32)))
+    assert [g.to_json() for g in again] == [g.to_json() for g in first]
+    assert len(candidates("boxy", 2.0 * half, 0, replace(cfg, synthesised=0))) == 3

@@ -159,3 +159,13 @@ def test_schedules_round_trip_through_the_grasp_file_record() -> None:
         PlannerConfig(schedule="other")
     with pytest.raises(ValueError, match="randomise"):
         PlannerConfig(schedule="evaluation")
+
+
+def test_the_default_planner_records_as_the_shipped_plan_was_made() -> None:
+    """New planner settings left at their defaults (legacy schedule, no synthesis) leave the record
+    as it was: the shipped grasp file counts as planned under the default planner."""
+    from d3grasp.envs.grasp_file import grasp_file_path, read_grasp_file
+    from d3grasp.paths import default_manifest
+
+    shipped = read_grasp_file(grasp_file_path(default_manifest()))["planner"]
+    assert shipped == PlannerConfig().record()
