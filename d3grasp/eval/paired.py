@@ -1,11 +1,14 @@
 """Paired comparison of two controllers from ``d3grasp-eval --compare baseline`` results.
 
     python -m d3grasp.eval.paired eval_seed0/results.json eval_seed1/results.json
+    python -m d3grasp.eval.paired new/results.json --against old/results.json --a baseline --b baseline
 
 Both controllers met the same objects with the same seeds, so each episode of one has a twin of the
 other (same object, seed and repeat). Success rates from a few dozen objects move by several points
 with the seed alone; the paired view counts the objects only one controller succeeded on and tests
 them with the exact sign (McNemar) test, which a difference of two independent rates cannot do.
+``--against`` pairs the runs of two evaluations instead (the same objects and seeds under two grasp
+libraries, say): run ``--a`` of the first files with run ``--b`` of the others.
 """
 
 from __future__ import annotations
@@ -48,22 +51,30 @@ def sign_test_p(only_a: int, only_b: int) -> float:
     return min(1.0, 2.0 * tail)
 
 
+def _runs(path: Path, wanted: Sequence[str]) -> dict[str, Any]:
+    """The runs of a results file, checked to hold ``wanted`` (ValueError otherwise)."""
+    try:
+        runs = json.loads(Path(path).read_text(encoding="utf-8"))["runs"]
+    except (OSError, json.JSONDecodeError, KeyError) as exc:
+        raise ValueError(f"{path}: not a d3grasp-eval results.json ({exc})") from None
+    missing = [r for r in wanted if r not in runs]
+    if missing:
+        raise ValueError(f"{path}: no run {missing} (has {sorted(runs)}); evaluate with --compare baseline")
+    return runs
+
+
 def load_pairs(
-    paths: Sequence[Path], run_a: str = "policy", run_b: str = "baseline"
+    paths: Sequence[Path], run_a: str = "policy", run_b: str = "baseline", against: Sequence[Path] = ()
 ) -> list[tuple[dict[str, Any], dict[str, Any]]]:
-    """``(episode of a, its twin of b)`` over the result files (ValueError on a file without the runs)."""
+    """``(episode of a, its twin of b)`` over the result files (ValueError on a file without the runs);
+    with ``against``, run a of ``paths`` against run b of the ``against`` files."""
+    if against:
+        episodes_a = [ep for path in paths for ep in _runs(path, [run_a])[run_a]["episodes"]]
+        episodes_b = [ep for path in against for ep in _runs(path, [run_b])[run_b]["episodes"]]
+        return pair_episodes(episodes_a, episodes_b)
     pairs = []
     for path in paths:
-        try:
-            runs = json.loads(Path(path).read_text(encoding="utf-8"))["runs"]
-        except (OSError, json.JSONDecodeError, KeyError) as exc:
-            raise ValueError(f"{path}: not a d3grasp-eval results.json ({exc})") from None
-        missing = [r for r in (run_a, run_b) if r not in runs]
-        if missing:
-            raise ValueError(
-                f"{path}: no run {missing} (has {sorted(runs)}); evaluate with --compare baseline"
-            )
-
+        runs = _runs(path, [run_a, run_b])
         pairs += pair_episodes(runs[run_a]["episodes"], runs[run_b]["episodes"])
     return pairs
 
@@ -137,9 +148,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     p.add_argument("--a", default="policy", help="first run (default policy)")
     p.add_argument("--b", default="baseline", help="second run (default baseline)")
+    p.add_argument(
+        "--against",
+        nargs="+",
+        type=Path,
+        default=(),
+        help="results.json files of another evaluation: --a of RESULTS against --b of these",
+    )
     args = p.parse_args(argv)
     try:
-        pairs = load_pairs(args.results, args.a, args.b)
+        pairs = load_pairs(args.results, args.a, args.b, args.against)
     except ValueError as exc:
         print(f"d3grasp.eval.paired: error: {exc}", file=sys.stderr)
         return 2

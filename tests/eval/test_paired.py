@@ -81,3 +81,16 @@ def test_a_file_without_the_baseline_is_one_line_error(
     bad.write_text("{")
     assert main([str(bad)]) == 2
     assert "not a d3grasp-eval results.json" in capsys.readouterr().err
+
+
+def test_against_pairs_the_runs_of_two_evaluations(tmp_path: Path) -> None:
+    """Two grasp libraries, one evaluation each: the baseline of the new one against the old one's,
+    episode by episode; objects the other lacks are not paired."""
+    new = _results(tmp_path / "new.json", 0, [], [(True, True), (True, True), (True, False)])
+    old = _results(tmp_path / "old.json", 0, [], [(True, False), (False, False)])
+    pairs = load_pairs([new], "baseline", "baseline", against=[old])
+    assert [(a["object"], b["object"]) for a, b in pairs] == [("obj_0", "obj_0"), ("obj_1", "obj_1")]
+    disturb = next(r for r in compare_pairs(pairs) if r.metric == "s_disturb")
+    assert (disturb.n, disturb.only_a, disturb.only_b) == (2, 2, 0)
+    assert main([str(new), "--against", str(old), "--a", "baseline", "--b", "baseline"]) == 0
+    assert main([str(new), "--against", str(old), "--a", "policy/camera", "--b", "baseline"]) == 2
