@@ -10,9 +10,10 @@ starts (the state after the hold), reads for every world:
   ``joint_effort_limit``: this is what a hold asks of the motors), against the spec's effort limit;
 - the episode's friction coefficient of the object's shapes and its mass (the evaluation draws no
   dynamics: they are the nominal ones, recorded to show it);
-- the friction reserve ``mu * grip - push``: the tangential force the pads' normal forces could
-  resist at the object's friction against the 2.5 N push (the palm's contact is not a pad, so a power
-  grasp's reserve is a lower bound).
+- the friction reserve ``mu * grip - |m g + F|``: the tangential force the pads' normal forces could
+  resist at the object's friction against the load of the push that lost it (the weight and the
+  2.5 N push together; for a held episode the worst push, -z, where the two add). The palm's contact
+  is not a pad, so a power grasp's reserve is a lower bound.
 
 and joins each episode with what the planner's trials had said of its grasp (``grasps.json``: the
 score and trials of the type the episode used).
@@ -153,6 +154,26 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+PUSHES = {
+    "+x": (1.0, 0.0, 0.0),
+    "-x": (-1.0, 0.0, 0.0),
+    "+y": (0.0, 1.0, 0.0),
+    "-y": (0.0, -1.0, 0.0),
+    "+z": (0.0, 0.0, 1.0),
+    "-z": (0.0, 0.0, -1.0),
+}
+
+
+def reserve(ep: dict[str, Any], push: float) -> float | None:
+    """``mu * grip - |m g + F|`` (N) of an episode (module docstring); None without a snapshot."""
+    if ep.get("grip_n") is None or np.isnan(ep.get("mu", np.nan)):
+        return None
+    failure = str(ep.get("failure") or "")
+    direction = next((d for d in PUSHES if failure.endswith(f"({d})")), "-z")
+    load = np.array([0.0, 0.0, -GRAVITY * ep["mass"]]) + push * np.array(PUSHES[direction])
+    return float(ep["mu"] * ep["grip_n"] - np.linalg.norm(load))
+
+
 def where(ep: dict[str, Any]) -> str:
     """Where an episode was lost: held, or its failure cause."""
     return "held" if ep["s_disturb"] else str(ep["failure"])
@@ -165,7 +186,7 @@ def report(data: dict[str, Any]) -> str:
     lines = [
         f"## {data['perception']}, {data['split']} split, seeds {data['seeds']}: {len(eps)} episodes",
         "",
-        "| where | episodes | mean grip N (pads) | reserve mu*grip - push > 0 | max torque N m | "
+        "| where | episodes | mean grip N (pads) | reserve mu grip - abs(m g + F) > 0 | max torque N m | "
         "planned trials held (mean) |",
         "|---|---|---|---|---|---|",
     ]
@@ -174,8 +195,8 @@ def report(data: dict[str, Any]) -> str:
         groups[where(ep)].append(ep)
     for name, rows in sorted(groups.items(), key=lambda kv: (kv[0] != "held", -len(kv[1]))):
         grips = [r["grip_n"] for r in rows if r.get("grip_n") is not None]
-        reserve = [r for r in rows if r.get("grip_n") is not None and not np.isnan(r["mu"])]
-        spare = sum(1 for r in reserve if r["mu"] * r["grip_n"] > push)
+        reserves = [v for v in (reserve(r, push) for r in rows) if v is not None]
+        spare = sum(1 for v in reserves if v > 0.0)
         torques = [r["max_torque"] for r in rows if r.get("max_torque") is not None]
         planned = [
             r["planned_trials"]["disturb"] / max(1, r["planned_trials"]["of"])
@@ -184,7 +205,7 @@ def report(data: dict[str, Any]) -> str:
         ]
         lines.append(
             f"| {name} | {len(rows)} | {np.mean(grips) if grips else float('nan'):.2f} | "
-            f"{spare} of {len(reserve)} | {max(torques) if torques else float('nan'):.2f} | "
+            f"{spare} of {len(reserves)} | {max(torques) if torques else float('nan'):.2f} | "
             f"{np.mean(planned) if planned else float('nan'):.2f} |"
         )
     over = [ep for ep in eps if ep.get("torques") and np.any(np.abs(ep["torques"]) > effort)]
@@ -200,16 +221,35 @@ def report(data: dict[str, Any]) -> str:
     by = Counter((ep["grasp_type"], ep["size_bin"]) for ep in lost)
     total = Counter((ep["grasp_type"], ep["size_bin"]) for ep in eps)
     lines += [f"- {g} / {b}: {by[(g, b)]} of {total[(g, b)]}" for g, b in sorted(total)]
-    lines += ["", "| object | seed | type | where | grip N | mu*grip - push N | mass g | planned |"]
+    lines += ["", "By object (those with a loss): held of episodes, how they were lost, the planner's trials:"]
+    lines += ["", "| object | mass g | type | held | lost as | planned lift/held of |"]
+    lines += ["|---|---|---|---|---|---|"]
+    by_object: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for ep in eps:
+        by_object[ep["object"]].append(ep)
+    for obj, rows in sorted(by_object.items(), key=lambda kv: sum(r["s_disturb"] for r in kv[1])):
+        if all(r["s_disturb"] for r in rows):
+            continue
+        how = Counter(where(r) for r in rows if not r["s_disturb"])
+        trials = rows[0].get("planned_trials") or {}
+        types = "/".join(sorted({r["grasp_type"] for r in rows}))
+        lines.append(
+            f"| {obj} | {1e3 * rows[0].get('mass', float('nan')):.0f} | {types} | "
+            f"{sum(r['s_disturb'] for r in rows)} of {len(rows)} | "
+            + ", ".join(f"{k} {v}" for k, v in how.most_common())
+            + f" | {trials.get('lift', '')}/{trials.get('disturb', '')} of {trials.get('of', '')} |"
+        )
+    lines += ["", "| object | seed | type | where | grip N | reserve N | mass g | planned |"]
     lines += ["|---|---|---|---|---|---|---|---|"]
     for ep in sorted(lost, key=lambda e: (e["object"], e["seed"])):
         grip = ep.get("grip_n")
-        reserve = "" if grip is None or np.isnan(ep["mu"]) else f"{ep['mu'] * grip - push:+.2f}"
+        spare = reserve(ep, push)
         trials = ep.get("planned_trials") or {}
         grams = 1e3 * ep.get("mass", float("nan"))
         lines.append(
             f"| {ep['object']} | {ep['seed']} | {ep['grasp_type']} | {where(ep)} | "
-            f"{'' if grip is None else f'{grip:.2f}'} | {reserve} | {grams:.0f} | "
+            f"{'' if grip is None else f'{grip:.2f}'} | {'' if spare is None else f'{spare:+.2f}'} | "
+            f"{grams:.0f} | "
             f"{trials.get('lift', '')}/{trials.get('disturb', '')} of {trials.get('of', '')} |"
         )
     return "\n".join(lines)
