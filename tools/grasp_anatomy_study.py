@@ -221,7 +221,7 @@ def report(data: dict[str, Any]) -> str:
     by = Counter((ep["grasp_type"], ep["size_bin"]) for ep in lost)
     total = Counter((ep["grasp_type"], ep["size_bin"]) for ep in eps)
     lines += [f"- {g} / {b}: {by[(g, b)]} of {total[(g, b)]}" for g, b in sorted(total)]
-    lines += ["", "By object (those with a loss): held of episodes, how they were lost, the planner's trials:"]
+    lines += ["", "By object (those with a loss): held, how the others were lost, the planner's trials:"]
     lines += ["", "| object | mass g | type | held | lost as | planned lift/held of |"]
     lines += ["|---|---|---|---|---|---|"]
     by_object: dict[str, list[dict[str, Any]]] = defaultdict(list)
