@@ -161,7 +161,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         print(f"d3grasp.eval.paired: error: {exc}", file=sys.stderr)
         return 2
-    print(format_table(compare_pairs(pairs), args.a, args.b))
+    # Two evaluations compared: name the columns by file group as well as by run.
+    a, b = (f"{args.a} (results)", f"{args.b} (against)") if args.against else (args.a, args.b)
+    print(format_table(compare_pairs(pairs), a, b))
     return 0
 
 
