@@ -63,6 +63,21 @@ def _runs(path: Path, wanted: Sequence[str]) -> dict[str, Any]:
     return runs
 
 
+DEFAULT_RUNS: tuple[tuple[str, str], ...] = (("policy/camera", "baseline/camera"), ("policy", "baseline"))
+"""The pairs of runs compared by default, the first a results file holds: the main command's (every
+controller under the camera, ``--perception paper``), then a single-perception evaluation's."""
+
+
+def default_runs(path: Path) -> tuple[str, str]:
+    """The runs of ``DEFAULT_RUNS`` that the results file holds (its last pair when it holds none,
+    which ``load_pairs`` then reports missing)."""
+    try:
+        runs = json.loads(Path(path).read_text(encoding="utf-8")).get("runs", {})
+    except (OSError, json.JSONDecodeError, AttributeError):
+        runs = {}
+    return next((pair for pair in DEFAULT_RUNS if all(r in runs for r in pair)), DEFAULT_RUNS[-1])
+
+
 def load_pairs(
     paths: Sequence[Path], run_a: str = "policy", run_b: str = "baseline", against: Sequence[Path] = ()
 ) -> list[tuple[dict[str, Any], dict[str, Any]]]:
@@ -146,8 +161,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument(
         "results", nargs="+", type=Path, help="results.json files of d3grasp-eval --compare baseline"
     )
-    p.add_argument("--a", default="policy", help="first run (default policy)")
-    p.add_argument("--b", default="baseline", help="second run (default baseline)")
+    p.add_argument(
+        "--a",
+        default=None,
+        help="first run (default: policy/camera and baseline/camera if the files have them, as the main "
+        "command writes, else policy and baseline)",
+    )
+    p.add_argument("--b", default=None, help="second run (default: see --a)")
     p.add_argument(
         "--against",
         nargs="+",
@@ -157,6 +177,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     args = p.parse_args(argv)
     try:
+        if args.a is None or args.b is None:
+            a, b = default_runs(args.results[0])
+            args.a, args.b = args.a or a, args.b or b
         pairs = load_pairs(args.results, args.a, args.b, args.against)
     except ValueError as exc:
         print(f"d3grasp.eval.paired: error: {exc}", file=sys.stderr)

@@ -94,3 +94,23 @@ def test_against_pairs_the_runs_of_two_evaluations(tmp_path: Path) -> None:
     assert (disturb.n, disturb.only_a, disturb.only_b) == (2, 2, 0)
     assert main([str(new), "--against", str(old), "--a", "baseline", "--b", "baseline"]) == 0
     assert main([str(new), "--against", str(old), "--a", "policy/camera", "--b", "baseline"]) == 2
+
+
+def test_defaults_follow_the_main_commands_run_names(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The main command writes policy/camera, baseline/camera and baseline/oracle: compared by default."""
+    runs = {
+        name: {"episodes": [_episode("obj_0", 0, "rigid", *outcome)]}
+        for name, outcome in (
+            ("policy/camera", (True, True)),
+            ("baseline/camera", (False, False)),
+            ("baseline/oracle", (True, False)),
+        )
+    }
+    path = tmp_path / "main.json"
+    path.write_text(json.dumps({"runs": runs}))
+    assert main([str(path)]) == 0
+    assert "| Diverse s_lift | 1 | 100.0 | 0.0 |" in capsys.readouterr().out
+    assert main([str(path), "--b", "baseline/oracle"]) == 0
+    assert "| Diverse s_lift | 1 | 100.0 | 100.0 |" in capsys.readouterr().out
