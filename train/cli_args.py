@@ -155,6 +155,7 @@ def make_play_parser() -> argparse.ArgumentParser:
         description="Run a trained D3Grasp policy, report grasp outcomes, export TorchScript/ONNX, time it.",
     )
     add_common_args(p)
+    add_env_override_arg(p, "env config override, e.g. phases.disturb_per_direction=0.5 (repeatable)")
     p.add_argument(
         "--checkpoint",
         required=True,

@@ -85,6 +85,7 @@ def play(
     pictures: PictureSettings | None = None,
     export_dir: str | os.PathLike[str] | None = None,
     trust_checkpoint: bool = False,
+    env_overrides: dict[str, Any] | None = None,
 ) -> PlayResult:
     """Evaluate the checkpoint's deterministic policy until ``episodes`` episodes finished.
 
@@ -95,7 +96,8 @@ def play(
     records a video, a USD animation and / or a tactile plot of the rollout. ``export_dir``: where
     the exports go (default ``exported/`` next to the checkpoint; for ``"shipped"``, ``exported/`` in
     the current folder: the package's files stay as installed). ``trust_checkpoint``: read a file
-    that names code (``--trust-checkpoint``; refused otherwise).
+    that names code (``--trust-checkpoint``; refused otherwise). ``env_overrides``: ``make_env``
+    overrides (``--set``).
     """
     get_task(task)
     is_baseline = str(checkpoint) == BASELINE
@@ -107,6 +109,7 @@ def play(
     seed_everything(seed)
     overrides = {} if perception is None else {"perception": perception}  # custom factories need not know it
     overrides |= interface_overrides(data)  # the checkpoint's action interface (none: nothing to pass)
+    overrides |= env_overrides or {}  # --set goes over it (a checkpoint that then does not fit is refused)
     env = make(task, num_envs=num_envs, device=device, seed=seed, **overrides)
     result = PlayResult()
     try:
@@ -214,6 +217,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             perception=args.perception,
             export_dir=args.export_dir,
             trust_checkpoint=args.trust_checkpoint,
+            env_overrides=dict(args.overrides),
             pictures=PictureSettings(
                 video=args.video,
                 video_fps=args.video_fps,

@@ -821,3 +821,11 @@ def test_shipped_policy_fits_its_task_and_its_exports_agree() -> None:
         want = exports.step(obs["policy"].numpy().astype(np.float32))
         obs, *_ = env.step(torch.from_numpy(want.astype(np.float32)))
     assert np.abs(want).max() > 0.05  # a trained policy, not the zero residual of a fresh one
+
+
+def test_play_passes_set_overrides_to_the_environment(capsys: pytest.CaptureFixture[str]) -> None:
+    """``d3grasp-play --set KEY=VALUE`` reaches the environment's config: an unknown key is refused
+    there in one line naming it (before any world is built)."""
+    assert play_main(["--checkpoint", "baseline", "--set", "phases.no_such_setting=1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no_such_setting" in err and "\n" not in err
