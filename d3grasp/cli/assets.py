@@ -371,7 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-plan-grasps",
         dest="plan_grasps",
         action="store_false",
-        help="skip planning the new objects' grasps (plan-grasps; ~10-30 s a rigid object per core): "
+        help="skip planning the new objects' grasps (plan-grasps; ~40 s a rigid object on 2 cores, "
+        "~77 s with --schedule evaluation, minutes a soft one): "
         "until planned they get the geometric rule's grasp",
     )
     p.add_argument(
