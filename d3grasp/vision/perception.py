@@ -35,8 +35,8 @@ class LocalisationError:
 
     centre: float  # 3-D distance between estimated and true bounding-box centres
     horizontal: float  # the same in the table plane
-    extents: float  # largest |error| of the sorted horizontal extents and of the height
-    yaw: float  # footprint orientation error modulo 90 degrees (boxes look the same turned by 90)
+    extents: float  # largest |error| of the box's sides, compared along the same axes, and of its height
+    yaw: float  # the box's orientation error, modulo its half turn (localisation_error)
 
     def as_record(self) -> dict[str, float]:
         return {
@@ -50,18 +50,28 @@ class LocalisationError:
 def localisation_error(
     est: ObjectEstimate, true_centre: np.ndarray, true_yaw: float, true_extents: np.ndarray
 ) -> LocalisationError:
+    """The estimated box against the true one. A box is the same box turned by half a turn, and the
+    same box written turned by a quarter turn with its two sides swapped: of the estimate's two
+    writings (yaw, sides) and (yaw + 90 degrees, sides swapped), the one whose yaw is nearer the
+    truth's (modulo a half turn) is compared, its sides with the truth's along the same axes. So a
+    box turned by 90 degrees with its sides unswapped (another box, when the sides differ) reads as
+    the difference of its sides, and the same box written the other way reads as no error."""
     d = est.centre - np.asarray(true_centre, dtype=np.float64)
     te = np.asarray(true_extents, dtype=np.float64)
-    ext = max(
-        float(np.max(np.abs(np.sort(est.extents[:2]) - np.sort(te[:2])))),
-        abs(float(est.extents[2] - te[2])),
-    )
-    dy = (est.yaw - true_yaw) % (0.5 * math.pi)
+    ex = np.asarray(est.extents, dtype=np.float64)
+
+    def half_turn_error(yaw: float) -> float:
+        dy = (yaw - true_yaw) % math.pi
+        return min(dy, math.pi - dy)
+
+    writings = [(est.yaw, ex[:2]), (est.yaw + 0.5 * math.pi, ex[1::-1])]
+    yaw, sides = min(writings, key=lambda w: half_turn_error(w[0]))
+    ext = max(float(np.max(np.abs(sides - te[:2]))), abs(float(ex[2] - te[2])))
     return LocalisationError(
         centre=float(np.linalg.norm(d)),
         horizontal=float(np.linalg.norm(d[:2])),
         extents=ext,
-        yaw=float(min(dy, 0.5 * math.pi - dy)),
+        yaw=float(half_turn_error(yaw)),
     )
 
 
