@@ -10,17 +10,16 @@ import json
 import math
 from pathlib import Path
 
+import newton
 import numpy as np
 import pytest
+import warp as wp
+
+from d3grasp.authoring import hand as H
 
 REPO = Path(__file__).resolve().parents[2]
 SPEC_PATH = REPO / "tools" / "specs" / "dexhand13_kinematics.json"
 HAND_USD = REPO / "assets_usd" / "hands" / "dexhand13.usda"
-
-newton = pytest.importorskip("newton")
-wp = pytest.importorskip("warp")
-
-from d3grasp.authoring import hand as H  # noqa: E402
 
 # ---------------------------------------------------------------- independent NumPy reference
 

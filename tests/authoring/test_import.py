@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from d3grasp.authoring import tetmesh, usd_soft  # noqa: F401 (usd_soft: the soft USD writer must import)
 from d3grasp.authoring.importer import import_meshes
 from d3grasp.authoring.manifest import read_manifest, resolve_asset_path
 from d3grasp.authoring.meshcheck import MeshError, load_and_check
@@ -202,13 +203,9 @@ def test_bad_material_parameters(tmp_path: Path) -> None:
 
 
 def test_import_deformable_sphere(tmp_path: Path) -> None:
-    """End to end through the soft-body authoring functions (skipped where they are absent)."""
-    pytest.importorskip("d3grasp.authoring.usd_soft")
-    tetmesh = pytest.importorskip("d3grasp.authoring.tetmesh")
-    try:
-        tetmesh._ftetwild()
-    except ImportError:
-        pytest.skip("pytetwild not installed")
+    """End to end through the soft-body authoring functions. The mesher (pytetwild) is in the test
+    extra: a missing or broken one fails here rather than skipping."""
+    tetmesh._ftetwild()
     src = tmp_path / "sponge.stl"
     trimesh.creation.icosphere(subdivisions=2, radius=0.035).export(src)
     E, nu, rho = 8.0e4, 0.35, 250.0
@@ -233,11 +230,7 @@ def test_import_flat_soft_bar(tmp_path: Path, extents: tuple[float, float, float
     """A flat bar took the mesher down: fTetWild crashed the importing process (segmentation fault,
     or a double free) once its envelope grew past a quarter of the bar's thickness. The envelope is
     bounded by the thickness and the mesher runs in a child process: the bar is meshed."""
-    tetmesh = pytest.importorskip("d3grasp.authoring.tetmesh")
-    try:
-        tetmesh._ftetwild_library()
-    except ImportError:
-        pytest.skip("pytetwild not installed")
+    tetmesh._ftetwild_library()
     src = tmp_path / "bar.stl"
     trimesh.creation.box(extents=extents).export(src)
     (e,) = import_meshes(

@@ -23,7 +23,6 @@ from d3grasp.paths import default_manifest
 
 REPO = Path(__file__).resolve().parents[2]
 CLASSES = ("sponge", "bread", "plush", "rubber")
-HAS_TETWILD = importlib.util.find_spec("pytetwild") is not None
 
 
 def _soft_entries():
@@ -184,7 +183,6 @@ def test_rebuild_reuses_committed_tets(tmp_path, monkeypatch, assert_usda_matche
 # ------------------------------------------------------------------------------ authoring functions
 
 
-@pytest.mark.skipif(not HAS_TETWILD, reason="pytetwild (authoring extra) not installed")
 def test_tetrahedralize_sphere_volume_orientation_and_count(tmp_path, monkeypatch):
     from d3grasp.authoring.tetmesh import surface_faces, tetrahedralize
 
@@ -208,7 +206,6 @@ def test_tetrahedralize_sphere_volume_orientation_and_count(tmp_path, monkeypatc
     assert (outward > 0).all()
 
 
-@pytest.mark.skipif(not HAS_TETWILD, reason="pytetwild (authoring extra) not installed")
 def test_tetrahedralize_refuses_open_mesh():
     from d3grasp.authoring.tetmesh import tetrahedralize
 
@@ -220,7 +217,6 @@ def test_tetrahedralize_refuses_open_mesh():
         tetrahedralize(box, target_tets=5000)
 
 
-@pytest.mark.skipif(not HAS_TETWILD, reason="pytetwild (authoring extra) not installed")
 def test_a_mesher_crash_is_a_failed_attempt(monkeypatch):
     from d3grasp.authoring import tetmesh
 
@@ -390,7 +386,6 @@ SOFT_IMPORT_FAMILY = {
 }
 
 
-@pytest.mark.skipif(not HAS_TETWILD, reason="pytetwild (authoring extra) not installed")
 def test_soft_import_of_ordinary_shapes(tmp_path):
     from d3grasp.authoring.importer import import_meshes
 

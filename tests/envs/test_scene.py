@@ -4,11 +4,10 @@ written out here as the reference), and the layout's indices must point at the s
 
 from __future__ import annotations
 
+import newton
 import numpy as np
 import pytest
-
-newton = pytest.importorskip("newton")
-wp = pytest.importorskip("warp")
+import warp as wp
 
 from d3grasp.authoring import hand as hand_def  # noqa: E402
 from d3grasp.authoring.manifest import read_manifest, resolve_asset_path  # noqa: E402

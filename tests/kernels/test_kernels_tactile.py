@@ -254,7 +254,8 @@ def test_layout_rejects_duplicate_pad_slots() -> None:
 
 def test_layout_from_newton_model() -> None:
     """Pads found by label in a two-world Newton model; pad frames are the shapes' own frames."""
-    newton = pytest.importorskip("newton")
+    import newton  # a core dependency: its absence fails, not skips
+
     hand = newton.ModelBuilder()
     body = hand.add_body(xform=wp.transform_identity(), label="finger")
     rots = Rotation.random(NUM_PADS, random_state=8).as_quat()
