@@ -214,3 +214,38 @@ def test_records_name_the_pads_touching_at_the_lift_start_and_end() -> None:
     assert rec["pads_at_lift"] == [PAD_NAMES[index_tip], PAD_NAMES[thumb]]
     assert rec["pads_at_hold"] == [PAD_NAMES[index_tip], PAD_NAMES[middle_tip]]
     assert rec["s_grasp"]  # thumb and an opposing pad at the lift's start
+
+
+def test_success_bounds_just_inside_and_just_outside() -> None:
+    """The paper's bounds, written here as numbers: s_lift needs the object held 0.1 m up within 2 cm
+    (a rise of 8.1 cm counts, 7.9 cm does not); s_disturb allows less than 2 cm of motion against
+    the palm in a push (1.9 cm holds, 2.1 cm is lost). Changing either tolerance or the lift height
+    flips one of these four worlds."""
+    env = _env(4, lift_on_touch=False)
+    assert env.cfg.phases.lift_height == LIFT == 0.1
+    ps = env.phase_start
+    lift0, dist0 = ps["lift"], ps["disturb"]
+    push = env.script.steps_per_push
+    palm_up = lambda t: _rise_profile(env, t, lift0)  # noqa: E731
+    rise_scale = torch.tensor([0.081 / 0.1, 0.079 / 0.1, 1.0, 1.0])  # worlds 0-1: the lift's bound
+
+    def object_path(t: int) -> torch.Tensor:
+        pos = torch.zeros(4, 3)
+        pos[:, 2] = rise_scale * palm_up(t)
+        if t > dist0 + 2:  # a step after the first push's first scored step: worlds 2-3 move
+            pos[2, 0], pos[3, 0] = 0.019, 0.021  # along +x, the first push's direction
+        return pos
+
+    def palm_path(t: int) -> torch.Tensor:
+        p = torch.zeros(4, 3)
+        p[:, 2] = 0.05 + palm_up(t)
+        return p
+
+    grasped = _grasp_forces()
+    records = _run(env, object_path, palm_path, lambda t: grasped.expand(4, NUM_PADS, 3).clone())
+    assert push >= 4  # the move happens inside the first push's window
+    lift = [r["s_lift"] for r in records]
+    hold = [r["s_disturb"] for r in records]
+    assert lift == [True, False, True, True], records
+    assert hold == [True, False, True, False], records
+    assert records[3]["failure"] == "lost under a push (+x)"
