@@ -163,7 +163,23 @@ def render() -> str:
     lines += [f"| `{k}` | {v} | {m} |" for k, v, m in env_rows(get_task(DEFAULT_TASK).make_cfg())]
     lines += ["", "## Runner and PPO (`--agent`)", "", "| key | default | meaning |", "|---|---|---|"]
     lines += [f"| `{k}` | {v} | {m} |" for k, v, m in agent_rows(DEFAULT_TASK)]
-    lines += ["", "## The other tasks", "", "What each task sets otherwise than the default task.", ""]
+    lines += [
+        "",
+        "## Tasks",
+        "",
+        "| task | objects | actor reads | critic reads | closing prior (`rule.stop_on`) | experiment name |",
+        "|---|---|---|---|---|---|",
+    ]
+    for task in TASKS:
+        cfg, agent = get_task(task).make_cfg(), make_train_cfg(task)
+        actor = "touch, proprioception, clock" if cfg.tactile_obs else "proprioception, clock (no touch)"
+        critic = " + ".join(agent["obs_groups"]["critic"])
+        lines.append(
+            f"| `{task}` | {', '.join(cfg.objects.kinds)} | {actor} | {critic} | {cfg.rule.stop_on} | "
+            f"`{agent['experiment_name']}` |"
+        )
+    lines += ["", "## The other tasks' settings", ""]
+    lines += ["What each task sets otherwise than the default task.", ""]
     for task in TASKS:
         if task == DEFAULT_TASK:
             continue
