@@ -46,7 +46,7 @@ from d3grasp.eval.metrics import (
 from d3grasp.eval.paired import compare_pairs, format_table, pair_episodes
 from d3grasp.eval.resume import BatchStore, batch_keys
 from d3grasp.files import atomic_write_text
-from d3grasp.policies import BASELINE, SHIPPED, resolve_checkpoint, shipped_ablation
+from d3grasp.policies import ABLATION_NAMES, BASELINE, SHIPPED, resolve_checkpoint, shipped_ablation
 from d3grasp.policies.teacher import TEACHER, TEACHER_WRIST
 from d3grasp.vision.perception import localisation_markdown, localisation_summary
 
@@ -74,13 +74,6 @@ PAPER_REFERENCE = f"{BASELINE}/oracle"
 RESERVED_OVERRIDES: frozenset[str] = frozenset(
     {"objects", "eval_mode", "num_envs", "seed", "grasp_types", "device", "perception"}
 )
-# Ablation run names by training task: the paper's ablation table columns. Other tasks (the
-# asymmetric Diverse / Deformable variants) are named after their variant.
-ABLATION_NAMES: dict[str, str] = {
-    "D3Grasp-DexHand13-Base-v0": "Base",
-    "D3Grasp-DexHand13-BaseTactile-v0": "Base+Tactile",
-    DEFAULT_TASK: "Asymmetric",
-}
 
 __all__ = [
     "BASELINE",

@@ -10,12 +10,16 @@ ONNX exports.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 __all__ = [
+    "ABLATIONS",
+    "ABLATION_NAMES",
     "BASELINE",
     "SHIPPED",
     "SHIPPED_ABLATION",
+    "Ablation",
     "SHIPPED_POLICIES",
     "resolve_checkpoint",
     "shipped_ablation",
@@ -31,13 +35,28 @@ BASELINE = "baseline"
 # task -> folder under d3grasp/policies/
 SHIPPED_POLICIES: dict[str, str] = {"D3Grasp-DexHand13-Mixed-v0": "mixed_v0"}
 
+
+@dataclass(frozen=True)
+class Ablation:
+    """One column of the paper's ablation table: the task it trains on, its name in the tables and
+    the folder of its shipped checkpoint under d3grasp/policies/."""
+
+    task: str
+    name: str
+    folder: str
+
+
 # The paper's ablation table under the camera, one recipe and budget each (their model cards):
-# ``d3grasp-eval --ablation shipped``. Task -> folder under d3grasp/policies/.
-SHIPPED_ABLATION: dict[str, str] = {
-    "D3Grasp-DexHand13-Base-v0": "ablation_base",
-    "D3Grasp-DexHand13-BaseTactile-v0": "ablation_basetactile",
-    "D3Grasp-DexHand13-Mixed-v0": "ablation_asymmetric",
-}
+# ``d3grasp-eval --ablation shipped``, in the table's order. The one declaration of the ablations.
+ABLATIONS: tuple[Ablation, ...] = (
+    Ablation("D3Grasp-DexHand13-Base-v0", "Base", "ablation_base"),
+    Ablation("D3Grasp-DexHand13-BaseTactile-v0", "Base+Tactile", "ablation_basetactile"),
+    Ablation("D3Grasp-DexHand13-Mixed-v0", "Asymmetric", "ablation_asymmetric"),
+)
+SHIPPED_ABLATION: dict[str, str] = {a.task: a.folder for a in ABLATIONS}
+"""Task -> folder of its shipped ablation checkpoint."""
+ABLATION_NAMES: dict[str, str] = {a.task: a.name for a in ABLATIONS}
+"""Task -> its column's name in the tables (other tasks are named after their variant)."""
 
 _ROOT = Path(__file__).resolve().parent
 
