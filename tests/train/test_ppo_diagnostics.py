@@ -219,3 +219,69 @@ def test_curves_summarise_the_diagnostics(tmp_path: Path) -> None:
     assert cos.high == pytest.approx(0.50) and cos.last == pytest.approx(0.59)
     assert rows["episodes_per_update"].median == 52.0
     assert "| grad_cosine_split_half | 0.300 |" in diagnostics_markdown(list(rows.values()), 10, 50)
+
+
+def test_one_masked_update_against_the_loss_and_gradient_by_hand() -> None:
+    """One epoch, one mini-batch: at the rollout's own parameters the ratio is 1, so the clipped
+    surrogate the update reports is -sum(active A) / n_active, and the actor's gradient (before the
+    optimiser's step) is that of -sum(active A log pi) / n_active, recomputed here by stepping the
+    LSTM through the stored observations. Advantages on masked steps change neither."""
+    W = 4
+    active = torch.ones(T, W, dtype=torch.bool)
+    active[:2] = False
+    active[4, 1] = False
+
+    def run(scale_masked: float) -> tuple[dict[str, float], list[torch.Tensor], D3GraspPPO, float]:
+        alg = _algorithm(W, num_learning_epochs=1, num_mini_batches=1, max_grad_norm=1e9, entropy_coef=0.0)
+        _mirrored_rollout(alg, active)
+        st = alg.storage
+        st.advantages[~active] = scale_masked  # masked steps' advantages: anything
+        adv = st.advantages[..., 0]
+        expected = -float((adv * active.float()).sum() / active.float().sum())
+        grads: list[torch.Tensor] = []
+        step = alg.optimizer.step
+
+        def capture(*a: object, **k: object) -> None:
+            grads.extend(
+                (torch.zeros_like(p) if p.grad is None else p.grad.clone()) for p in alg.actor.parameters()
+            )
+            step(*a, **k)
+
+        alg.optimizer.step = capture  # type: ignore[method-assign]
+        before = [p.detach().clone() for p in alg.actor.parameters()]
+        # The reference gradient at the rollout's parameters, before the update moves them.
+        reference = _reference_gradient(alg, active, before)
+        out = alg.update()
+        return out, grads, reference, expected
+
+    out, grads, reference, expected = run(0.0)
+    assert out["surrogate"] == pytest.approx(expected, rel=1e-5, abs=1e-7)
+    got = torch.cat([g.reshape(-1) for g in grads])
+    np.testing.assert_allclose(got.numpy(), reference.numpy(), rtol=1e-4, atol=1e-6)
+    out2, grads2, _, _ = run(1000.0)  # huge advantages where no action took effect
+    assert out2["surrogate"] == pytest.approx(out["surrogate"], rel=1e-6, abs=1e-8)
+    np.testing.assert_allclose(torch.cat([g.reshape(-1) for g in grads2]).numpy(), got.numpy(), rtol=1e-5)
+
+
+def _reference_gradient(alg: D3GraspPPO, active: torch.Tensor, params_at: list[torch.Tensor]) -> torch.Tensor:
+    """d/dtheta of -sum(active A log pi) / n_active, stepping the LSTM one step at a time."""
+    st, W = alg.storage, alg.storage.num_envs
+    params = list(alg.actor.parameters())
+    for p, v in zip(params, params_at, strict=True):
+        assert torch.equal(p.detach(), v)
+    alg.actor.reset()
+    alg.actor.hidden_state = None
+    loss = torch.zeros(())
+    for t in range(T):
+        obs = TensorDict({"policy": st.observations["policy"][t].clone()}, batch_size=[W])
+        alg.actor(obs, stochastic_output=True)
+        logp = alg.actor.get_output_log_prob(st.actions[t])
+        loss = loss - (st.advantages[t, :, 0] * active[t].float() * logp).sum()
+        alg.actor.reset(st.dones[t, :, 0].bool())
+    loss = loss / active.float().sum()
+    grads = torch.autograd.grad(loss, params, allow_unused=True)
+    alg.actor.reset()
+    alg.actor.hidden_state = None
+    return torch.cat(
+        [(torch.zeros_like(p) if g is None else g).reshape(-1) for p, g in zip(params, grads, strict=True)]
+    ).detach()
