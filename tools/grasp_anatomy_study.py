@@ -42,11 +42,11 @@ GRAVITY = 9.81
 
 def _spec_effort() -> np.ndarray:
     """(16,) effort limits of the finger joints in the policy's order, from the hand's spec."""
+    from d3grasp.authoring.hand import load_spec
     from d3grasp.dexhand13 import FINGER_JOINT_NAMES
 
-    spec = json.loads((Path(__file__).parent / "specs" / "dexhand13_kinematics.json").read_text())
-    effort = {j["name"]: float(j["effort"]) for j in spec["joints"]}
-    return np.array([effort[n] for n in FINGER_JOINT_NAMES])
+    spec = load_spec()
+    return np.array([spec.joint(n).effort for n in FINGER_JOINT_NAMES])
 
 
 def instrumented_env(*args: Any, **kwargs: Any) -> Any:

@@ -51,12 +51,17 @@ def sign_test_p(only_a: int, only_b: int) -> float:
     return min(1.0, 2.0 * tail)
 
 
+def _read_runs(path: Path) -> dict[str, Any]:
+    """The runs of a results file (ValueError for a file that is not one)."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))["runs"]
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a d3grasp-eval results.json ({exc})") from None
+
+
 def _runs(path: Path, wanted: Sequence[str]) -> dict[str, Any]:
     """The runs of a results file, checked to hold ``wanted`` (ValueError otherwise)."""
-    try:
-        runs = json.loads(Path(path).read_text(encoding="utf-8"))["runs"]
-    except (OSError, json.JSONDecodeError, KeyError) as exc:
-        raise ValueError(f"{path}: not a d3grasp-eval results.json ({exc})") from None
+    runs = _read_runs(path)
     missing = [r for r in wanted if r not in runs]
     if missing:
         raise ValueError(f"{path}: no run {missing} (has {sorted(runs)}); evaluate with --compare baseline")
@@ -72,8 +77,8 @@ def default_runs(path: Path) -> tuple[str, str]:
     """The runs of ``DEFAULT_RUNS`` that the results file holds (its last pair when it holds none,
     which ``load_pairs`` then reports missing)."""
     try:
-        runs = json.loads(Path(path).read_text(encoding="utf-8")).get("runs", {})
-    except (OSError, json.JSONDecodeError, AttributeError):
+        runs = _read_runs(path)
+    except ValueError:
         runs = {}
     return next((pair for pair in DEFAULT_RUNS if all(r in runs for r in pair)), DEFAULT_RUNS[-1])
 

@@ -132,9 +132,8 @@ def run_shift_benchmark(
     extra = dict(overrides or {})
     if "scene_shift" in extra:
         raise ValueError("scene_shift is what this benchmark sets: give the shift with --mm")
-    report: ShiftReport | None = None
-    runs = {"none": (0.0, 0.0), **SHIFT_DIRECTIONS}
-    for name, (ux, uy) in runs.items():
+    by_shift: dict[str, dict[EpisodeKey, Outcome]] = {}
+    for name, (ux, uy) in {"none": (0.0, 0.0), **SHIFT_DIRECTIONS}.items():
         merged: dict[EpisodeKey, Outcome] = {}
         for seed in seeds:
             settings = EvalSettings(
@@ -149,9 +148,6 @@ def run_shift_benchmark(
             log(f"[bench shift] {name}, seed {seed}")
             result = evaluate(settings, progress=progress, log=log, workers=workers)
             merged |= outcomes(result.runs[BASELINE], seed)
-        if report is None:
-            report = ShiftReport(shift_m, merged)
-        else:
-            report.shifted[name] = merged
-    assert report is not None
-    return report
+        by_shift[name] = merged
+    reference = by_shift.pop("none")
+    return ShiftReport(shift_m, reference, by_shift)

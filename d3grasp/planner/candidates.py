@@ -152,16 +152,9 @@ def _synthesised_grasps(
 
 def convex_hull(usd_path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(points, triangles) of the convex hull of a rigid object's collision meshes, object frame."""
-    from pxr import Usd, UsdGeom
     from scipy.spatial import ConvexHull
 
-    stage = Usd.Stage.Open(str(usd_path))
-    pts = [
-        np.asarray(UsdGeom.Mesh(prim).GetPointsAttr().Get(), dtype=np.float64)
-        for prim in stage.Traverse()
-        if prim.IsA(UsdGeom.Mesh) and prim.GetParent().GetName() == "collision"
-    ]
-    every = np.concatenate([p for p in pts if len(p)])
+    every = np.concatenate(_collision_points(usd_path))
     hull = ConvexHull(every)
     used = np.unique(hull.simplices)
     remap = np.full(len(every), -1, dtype=np.int64)
@@ -206,6 +199,15 @@ def _piece_grasps(
 def collision_pieces(usd_path: str | Path) -> list[tuple[np.ndarray, np.ndarray]]:
     """(centre, extents) of the bounding box of each collision hull of a rigid object's USD file, in
     the object frame (the authoring tools centre the object's box at the origin)."""
+    out = []
+    for pts in _collision_points(usd_path):
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        out.append((0.5 * (lo + hi), hi - lo))
+    return out
+
+
+def _collision_points(usd_path: str | Path) -> list[np.ndarray]:
+    """The points (n, 3) of each non-empty collision mesh of a rigid object's USD file, object frame."""
     from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.Open(str(usd_path))
@@ -214,8 +216,7 @@ def collision_pieces(usd_path: str | Path) -> list[tuple[np.ndarray, np.ndarray]
         if prim.IsA(UsdGeom.Mesh) and prim.GetParent().GetName() == "collision":
             pts = np.asarray(UsdGeom.Mesh(prim).GetPointsAttr().Get(), dtype=np.float64)
             if len(pts):
-                lo, hi = pts.min(axis=0), pts.max(axis=0)
-                out.append((0.5 * (lo + hi), hi - lo))
+                out.append(pts)
     return out
 
 

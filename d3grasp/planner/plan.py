@@ -222,9 +222,9 @@ def _halving_rounds(
     # Each finalist's trials so far; the best of each object and type by its mean trial score.
     best: dict[tuple[str, str], tuple[float, Trial, list[dict[str, Any]]]] = {}
     n = cfg.screen_trials
-    for k, (s0, t, r0) in enumerate(finalists):
+    for k, (_, t, r0) in enumerate(finalists):
         rs = [r0, *screened[k * n : (k + 1) * n]]
-        mean = float(np.mean([s0, *(trial_score(r) for r in rs[1:])]))
+        mean = float(np.mean([trial_score(r) for r in rs]))
         key = (t.object_id, t.grasp.grasp)
         if key not in best or mean > best[key][0]:
             best[key] = (mean, t, rs)
@@ -280,9 +280,9 @@ def _legacy_rounds(
     retry_records = run_trials(retries, manifest, cfg.scoring) if retries else []
     out: dict[str, dict[str, Any]] = {e["id"]: {"grasps": {}} for e in entries}
     n = len(PERTURBATIONS)
-    for k, (s0, t, r0) in enumerate(finalists):
+    for k, (_, t, r0) in enumerate(finalists):
         rs = [r0, *retry_records[k * n : (k + 1) * n]]
-        score = float(np.mean([s0, *(trial_score(r) for r in rs[1:])]))
+        score = float(np.mean([trial_score(r) for r in rs]))
         best = out[t.object_id]["grasps"].get(t.grasp.grasp)
         if best is None or score > best["score"]:
             out[t.object_id]["grasps"][t.grasp.grasp] = {
