@@ -64,6 +64,25 @@ def test_arrows_point_one_way() -> None:
             assert not any(i.startswith("d3grasp.train") for i in imported), (name, imported)
 
 
+def test_geometry_is_a_leaf() -> None:
+    """d3grasp.geometry (rotations, quaternions) imports only the standard library and NumPy, nowhere
+    in the file, so every layer may import it."""
+    import sys
+
+    path = REPO / "d3grasp" / "geometry.py"
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            assert node.level == 0 and node.module, ("relative import", node.module)
+            names = [node.module]
+        elif isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        else:
+            continue
+        for n in names:
+            top = n.split(".")[0]
+            assert top in sys.stdlib_module_names or top == "numpy", n
+
+
 def test_evaluation_needs_nothing_of_training() -> None:
     mods = _modules()
     for name, path in mods.items():

@@ -39,10 +39,10 @@ def collect(
     stream), so a camera record and an oracle record of the same row share the object's pose."""
     import torch
 
-    from d3grasp.authoring.hand import quat_xyzw_to_matrix
     from d3grasp.envs import make_env
     from d3grasp.envs.config import BaselineConfig
     from d3grasp.eval.evaluate import select_objects
+    from d3grasp.geometry import quat_xyzw_to_matrix
 
     # A pad "first felt the object" above the force at which the rule stops a joint on it.
     touch_force = BaselineConfig().force_threshold

@@ -39,6 +39,7 @@ from d3grasp.dexhand13 import (  # noqa: F401  (re-exported: the authoring API n
     pad_finger,
     pad_groups,
 )
+from d3grasp.geometry import homogeneous, matrix_to_quat_xyzw_nonneg_w, quat_xyzw_to_matrix, rpy_matrix
 
 # --------------------------------------------------------------------------------------------
 # Names and fixed orders live in d3grasp.dexhand13 (the environment, the tactile kernel and the
@@ -225,59 +226,8 @@ class HandPhysics:
 
 
 # --------------------------------------------------------------------------------------------
-# Small rigid-transform helpers (NumPy, float64).
+# The root chain's coordinates (the rotation helpers are in d3grasp.geometry).
 # --------------------------------------------------------------------------------------------
-
-
-def rpy_matrix(rpy: Sequence[float]) -> np.ndarray:
-    """URDF rotation ``Rz(yaw) · Ry(pitch) · Rx(roll)`` for ``rpy = (roll, pitch, yaw)``."""
-    r, p, y = (float(a) for a in rpy)
-    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
-    rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
-    ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
-    rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
-    return rz @ ry @ rx
-
-
-def homogeneous(xyz: Sequence[float], rot: np.ndarray) -> np.ndarray:
-    m = np.eye(4)
-    m[:3, :3] = rot
-    m[:3, 3] = xyz
-    return m
-
-
-def matrix_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method, w >= 0)."""
-    m = np.asarray(rot, dtype=np.float64)
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0.0:
-        s = math.sqrt(tr + 1.0) * 2.0
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2.0
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2.0
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2.0
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.asarray(q)
-    q /= np.linalg.norm(q)
-    return q if q[3] >= 0.0 else -q
-
-
-def quat_xyzw_to_matrix(q: Sequence[float]) -> np.ndarray:
-    x, y, z, w = (float(v) for v in q)
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def palm_pose_to_root_q(pos: Sequence[float], quat_xyzw: Sequence[float]) -> np.ndarray:
@@ -301,7 +251,7 @@ def palm_pose_to_root_q(pos: Sequence[float], quat_xyzw: Sequence[float]) -> np.
 def root_q_to_palm_pose(root_q: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
     """Inverse of :func:`palm_pose_to_root_q`: palm position and quaternion (x, y, z, w)."""
     x, y, z, rz, ry, rx = (float(v) for v in root_q)
-    return np.array([x, y, z]), matrix_to_quat_xyzw(rpy_matrix((rx, ry, rz)))
+    return np.array([x, y, z]), matrix_to_quat_xyzw_nonneg_w(rpy_matrix((rx, ry, rz)))
 
 
 def spec_link_frames(spec: HandSpec, joint_q: dict[str, float] | None = None) -> dict[str, np.ndarray]:
@@ -387,7 +337,7 @@ def write_hand_usd(
     link_path = {name: f"{HAND_PRIM}/{name}" for name in (*ROOT_LINK_NAMES, *LINK_NAMES)}
 
     def _set_pose(xformable: UsdGeom.Xformable, m: np.ndarray) -> None:
-        q = matrix_to_quat_xyzw(m[:3, :3])
+        q = matrix_to_quat_xyzw_nonneg_w(m[:3, :3])
         xformable.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*(float(v) for v in m[:3, 3])))
         xformable.AddOrientOp(UsdGeom.XformOp.PrecisionDouble).Set(
             Gf.Quatd(float(q[3]), *(float(v) for v in q[:3]))
@@ -450,7 +400,7 @@ def write_hand_usd(
         if body0 is not None:
             joint.CreateBody0Rel().SetTargets([Sdf.Path(body0)])
         joint.CreateBody1Rel().SetTargets([Sdf.Path(body1)])
-        q = matrix_to_quat_xyzw(rot0)
+        q = matrix_to_quat_xyzw_nonneg_w(rot0)
         joint.CreateLocalPos0Attr(Gf.Vec3f(*(float(v) for v in pos0)))
         joint.CreateLocalRot0Attr(Gf.Quatf(float(q[3]), *(float(v) for v in q[:3])))
         joint.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.0))
@@ -646,7 +596,7 @@ def _read_pad_frames(path: str, mtime_ns: int) -> np.ndarray:
         # The pad frame prim, parent of the (off-centre) pad collider.
         prim = stage.GetPrimAtPath(f"{HAND_PRIM}/{_pad_parent_link(stage, pad)}/{pad}")
         m = np.array(cache.GetLocalTransformation(prim)[0], dtype=np.float64).T
-        rows.append(np.concatenate([m[:3, 3], matrix_to_quat_xyzw(m[:3, :3])]))
+        rows.append(np.concatenate([m[:3, 3], matrix_to_quat_xyzw_nonneg_w(m[:3, :3])]))
     out = np.array(rows)
     out.setflags(write=False)
     return out

@@ -31,7 +31,6 @@ import torch
 import warp as wp
 from tensordict import TensorDict
 
-from d3grasp.authoring.hand import quat_xyzw_to_matrix
 from d3grasp.authoring.manifest import resolve_asset_path
 from d3grasp.dexhand13 import ABDUCTION_JOINTS, NUM_FINGER_JOINTS, NUM_FINGERS
 from d3grasp.envs.baseline import RuleBasedController, rest_targets
@@ -48,6 +47,7 @@ from d3grasp.envs.scene import (
 )
 from d3grasp.envs.script import EpisodeScript
 from d3grasp.envs.sensors import Sensors, wp_view
+from d3grasp.geometry import quat_xyzw_to_matrix
 from d3grasp.kernels import rewards as rk
 from d3grasp.kernels import world_state as ws
 from d3grasp.vocabulary import GRASP_TYPES, METRICS, PHASES

@@ -10,8 +10,9 @@ Schema::
         "<asset id>": {
           "asset_sha256": "...",             # the asset file the grasps were measured on
           "environment": {"sim": {...}, "rule": {...}},  # the settings its trials ran under
-          "grasps": {"<type>": {ObjectGrasp.to_json(), "score": float, "trials": {...}}, ...}
-        }, ...
+          "grasps": {"<type>": {ObjectGrasp.to_json(), "score": float, "trials": {...}}, ...},
+          "planner": {...}                   # only on a record planned under other settings than
+        }, ...                               # the file's (adopted, d3grasp.planner.plan.adopt_plans)
       }
     }
 

@@ -50,7 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from d3grasp.authoring.hand import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from d3grasp.geometry import matrix_to_quat_xyzw_nonneg_w, quat_xyzw_to_matrix, rot_y, rot_z
 from d3grasp.vocabulary import GRASP_TYPES
 
 PALM_FRONT_X = 0.138  # palm collider front face (m, palm frame)
@@ -95,17 +95,6 @@ assert tuple(GRASPS) == GRASP_TYPES  # the vocabulary's order is the grasp id of
 # Palm orientation for zero yaw: columns are the palm's x, y, z axes in the world.
 _R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # palm faces -z
 _R_SIDE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # palm faces +y, thumb up
-
-
-def rot_z(a: float) -> np.ndarray:
-    """Rotation matrix (3, 3) about world z by ``a`` rad."""
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def wrap_angle(a: float) -> float:
-    """``a`` rad as the same turn in (-pi, pi]."""
-    return math.atan2(math.sin(a), math.cos(a))
 
 
 @dataclass(frozen=True)
@@ -175,7 +164,7 @@ class ObjectGrasp:
         return GraspPose(
             grasp=self.grasp,
             palm_pos=np.asarray(obj_pos, dtype=np.float64) + r @ self.palm_pos,
-            palm_quat=matrix_to_quat_xyzw(r @ quat_xyzw_to_matrix(self.palm_quat)),
+            palm_quat=matrix_to_quat_xyzw_nonneg_w(r @ quat_xyzw_to_matrix(self.palm_quat)),
             approach_dir=r @ self.approach_dir,
             feasible=self.feasible,
             preshape=self.preshape,
@@ -204,12 +193,6 @@ class ObjectGrasp:
             raise ValueError("a grasp's palm_pos and palm_quat must be finite, the quaternion of unit length")
         quat, app = quat / np.linalg.norm(quat), app / max(float(np.linalg.norm(app)), 1e-9)
         return cls(d["grasp"], pos, quat, app, True, pre)
-
-
-def rot_y(a: float) -> np.ndarray:
-    """Rotation matrix (3, 3) about y by ``a`` rad."""
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
 def object_grasp(
@@ -261,7 +244,7 @@ def object_grasp(
     return ObjectGrasp(
         grasp=grasp,
         palm_pos=-(r @ offset),
-        palm_quat=matrix_to_quat_xyzw(r),
+        palm_quat=matrix_to_quat_xyzw_nonneg_w(r),
         approach_dir=r[:, 2].copy(),
         feasible=feasible,
         preshape=tuple(float(x) for x in preshape),

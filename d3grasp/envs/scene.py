@@ -27,12 +27,13 @@ from d3grasp.authoring.hand import HandIndices
 from d3grasp.authoring.manifest import AssetEntry, read_manifest
 from d3grasp.dexhand13 import LINK_NAMES
 from d3grasp.envs.config import ObjectSetConfig
+from d3grasp.geometry import matrix_to_quat_xyzw_nonneg_w, quat_xyzw_to_matrix
 from d3grasp.paths import default_manifest
 
 HAND_ANCHOR_QUAT = (1.0, 0.0, 0.0, 0.0)
 """Rotation (x, y, z, w) of the root chain's anchor: π about world x, so the palm faces down."""
 
-_ANCHOR_R = hand_def.quat_xyzw_to_matrix(HAND_ANCHOR_QUAT)
+_ANCHOR_R = quat_xyzw_to_matrix(HAND_ANCHOR_QUAT)
 
 OBJECT_RIGID = 0
 OBJECT_SOFT = 1
@@ -45,9 +46,9 @@ def palm_world_pose_to_free_q(pos: np.ndarray, quat_xyzw: np.ndarray) -> np.ndar
 
 def palm_world_pose_to_root_q(pos: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
     """Root joint coordinates (6,) that put the palm at a world pose (the anchor sits at the origin)."""
-    r_world = hand_def.quat_xyzw_to_matrix(quat_xyzw)
+    r_world = quat_xyzw_to_matrix(quat_xyzw)
     return hand_def.palm_pose_to_root_q(
-        _ANCHOR_R.T @ np.asarray(pos, dtype=np.float64), hand_def.matrix_to_quat_xyzw(_ANCHOR_R.T @ r_world)
+        _ANCHOR_R.T @ np.asarray(pos, dtype=np.float64), matrix_to_quat_xyzw_nonneg_w(_ANCHOR_R.T @ r_world)
     )
 
 

@@ -36,9 +36,6 @@ from d3grasp.authoring.hand import (
     PAD_NORMAL_AXIS,
     PAD_NORMAL_SIGN,
     load_spec,
-    matrix_to_quat_xyzw,
-    quat_xyzw_to_matrix,
-    rpy_matrix,
 )
 from d3grasp.dexhand13 import (
     ABDUCTION_JOINTS,
@@ -48,7 +45,8 @@ from d3grasp.dexhand13 import (
     PAD_NAMES,
     PALM_LINK,
 )
-from d3grasp.envs.grasps import DROP_GAP, ObjectGrasp, object_grasp, rest_height, rot_z
+from d3grasp.envs.grasps import DROP_GAP, ObjectGrasp, object_grasp, rest_height
+from d3grasp.geometry import matrix_to_quat_xyzw_nonneg_w, quat_xyzw_to_matrix, rot_z, rpy_matrix
 from d3grasp.kernels.grasp_energy import (
     POSE_PARAMS,
     TERM_NAMES,
@@ -300,7 +298,7 @@ def initial_params(
         r_tilt = np.eye(3) + math.sin(angle) * kx + (1.0 - math.cos(angle)) * kx @ kx
         rz = rot_z(yaw)
         out[s, :3] = rz @ nominal.palm_pos + rng.normal(0.0, 0.005, size=3)
-        out[s, 3:POSE_PARAMS] = matrix_to_quat_xyzw(rz @ r_tilt @ r0)
+        out[s, 3:POSE_PARAMS] = matrix_to_quat_xyzw_nonneg_w(rz @ r_tilt @ r0)
         q = rng.uniform(0.2, 0.7, size=layout.num_joints)
         q[list(ABDUCTION_JOINTS)] = rng.uniform(-0.1, 0.1, size=len(ABDUCTION_JOINTS))
         q[ABDUCTION_JOINTS[3] + 1] = rng.uniform(0.6, 1.2)  # the thumb's swing under the palm

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from d3grasp.geometry import axis_angle_matrix, matrix_to_quat_xyzw_pivot_sign
+
 Pose = tuple[np.ndarray, np.ndarray]
 
 
@@ -81,40 +83,12 @@ def look_at_pose(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0
     return eye, np.stack([right, cam_up, -fwd], axis=1)
 
 
-def rotation_to_quat_xyzw(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method: the largest pivot)."""
-    m = np.asarray(r, dtype=np.float64)
-    tr = np.trace(m)
-    if tr > 0.0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    else:
-        i = int(np.argmax(np.diag(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
-        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
-        q[i] = 0.25 * s
-        q[j] = (m[j, i] + m[i, j]) / s
-        q[k] = (m[k, i] + m[i, k]) / s
-    q = np.asarray(q)
-    return q / np.linalg.norm(q)
-
-
-def _axis_angle_matrix(w: np.ndarray) -> np.ndarray:
-    theta = float(np.linalg.norm(w))
-    if theta < 1e-12:
-        return np.eye(3)
-    k = w / theta
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(theta) * kx + (1.0 - math.cos(theta)) * kx @ kx
-
-
 def perturb_pose(pose: Pose, rng: np.random.Generator, pos_std: float, rot_std: float) -> Pose:
     """A calibration error: the pose moved by N(0, pos_std) per axis and turned by N(0, rot_std) per axis."""
     pos, r = pose
     dp = rng.normal(0.0, pos_std, 3) if pos_std > 0 else np.zeros(3)
     dw = rng.normal(0.0, rot_std, 3) if rot_std > 0 else np.zeros(3)
-    return np.asarray(pos) + dp, _axis_angle_matrix(dw) @ np.asarray(r)
+    return np.asarray(pos) + dp, axis_angle_matrix(dw) @ np.asarray(r)
 
 
 def depth_noise_std(depth: np.ndarray, base: float, quadratic: float) -> np.ndarray:
@@ -192,7 +166,7 @@ class RGBDCamera:
         views = len(worlds)
         dev = self.model.device
         tf = [
-            wp.transformf(wp.vec3f(*map(float, p)), wp.quatf(*map(float, rotation_to_quat_xyzw(r))))
+            wp.transformf(wp.vec3f(*map(float, p)), wp.quatf(*map(float, matrix_to_quat_xyzw_pivot_sign(r))))
             for p, r in poses
         ]
         transforms = wp.array(tf, dtype=wp.transformf, device=dev)

@@ -27,8 +27,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from d3grasp.authoring.hand import quat_xyzw_to_matrix
-from d3grasp.envs.grasps import rot_z, wrap_angle
+from d3grasp.geometry import quat_xyzw_to_matrix, rot_z, wrap_angle
 
 RASTER_CELL = 0.001  # m, the grid the model's footprint is drawn on
 YAW_STEP = math.radians(2.0)  # the full-turn scan; then refined to YAW_STEP / 5 round the pick

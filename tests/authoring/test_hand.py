@@ -16,6 +16,7 @@ import pytest
 import warp as wp
 
 from d3grasp.authoring import hand as H
+from d3grasp.geometry import matrix_to_quat_xyzw_nonneg_w
 
 REPO = Path(__file__).resolve().parents[2]
 SPEC_PATH = REPO / "tools" / "specs" / "dexhand13_kinematics.json"
@@ -241,7 +242,7 @@ def test_palm_pose_root_q_round_trip():
     for _ in range(20):
         rz, ry, rx = rng.uniform(-3.0, 3.0), rng.uniform(-1.4, 1.4), rng.uniform(-3.0, 3.0)
         r = _rot_z(rz) @ _rot_y(ry) @ _rot_x(rx)
-        q = H.matrix_to_quat_xyzw(r)
+        q = matrix_to_quat_xyzw_nonneg_w(r)
         np.testing.assert_allclose(_quat_to_rot(q), r, atol=1e-12)
         root = H.palm_pose_to_root_q((0.1, 0.2, 0.3), q)
         np.testing.assert_allclose(root, [0.1, 0.2, 0.3, rz, ry, rx], atol=1e-9)
@@ -253,7 +254,7 @@ def test_fk_matches_numpy(spec, seed):
     rng = np.random.default_rng(seed)
     anchor_r = _rot_z(rng.uniform(-3, 3)) @ _rot_y(rng.uniform(-1, 1)) @ _rot_x(rng.uniform(-3, 3))
     anchor_p = rng.uniform(-1, 1, 3)
-    anchor_q = H.matrix_to_quat_xyzw(anchor_r)
+    anchor_q = matrix_to_quat_xyzw_nonneg_w(anchor_r)
     builder = newton.ModelBuilder()
     idx = H.add_hand(builder, HAND_USD, xform=wp.transform(wp.vec3(*anchor_p), wp.quat(*anchor_q)))
     model = builder.finalize(device="cpu")

@@ -13,13 +13,12 @@ import numpy as np
 import pytest
 
 from d3grasp.envs.config import CameraConfig
-from d3grasp.envs.grasps import wrap_angle
+from d3grasp.geometry import matrix_to_quat_xyzw_pivot_sign, wrap_angle
 from d3grasp.vision.camera import (
     CameraIntrinsics,
     add_depth_noise,
     look_at_pose,
     perturb_pose,
-    rotation_to_quat_xyzw,
 )
 from d3grasp.vision.footprint import footprint_of_pieces, register
 from d3grasp.vision.localisation import fit_plane_ransac, localise_object, min_area_rectangle
@@ -90,12 +89,12 @@ def test_look_at_pose_and_quaternion():
     np.testing.assert_allclose(-r[:, 2], np.array([0.0, 1.0, -1.0]) / math.sqrt(2.0), atol=1e-12)
     assert r[2, 1] > 0  # image up has a positive world z component
     # The quaternion of a 90 deg turn about z.
-    q = rotation_to_quat_xyzw(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
+    q = matrix_to_quat_xyzw_pivot_sign(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
     np.testing.assert_allclose(np.abs(q), [0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)], atol=1e-12)
     rng = np.random.default_rng(3)
     for _ in range(20):
         _, rr = perturb_pose((pos, r), rng, 0.0, 1.0)
-        np.testing.assert_allclose(_quat_to_matrix(rotation_to_quat_xyzw(rr)), rr, atol=1e-9)
+        np.testing.assert_allclose(_quat_to_matrix(matrix_to_quat_xyzw_pivot_sign(rr)), rr, atol=1e-9)
 
 
 def test_min_area_rectangle_of_a_rotated_rectangle():

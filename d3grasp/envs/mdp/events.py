@@ -18,8 +18,9 @@ import numpy as np
 import torch
 import warp as wp
 
-from d3grasp.envs.grasps import GraspPose, choose_grasp, grasp_pose, rest_height, rot_z, wrap_angle
+from d3grasp.envs.grasps import GraspPose, choose_grasp, grasp_pose, rest_height
 from d3grasp.envs.scene import OBJECT_SOFT, palm_world_pose_to_free_q, palm_world_pose_to_root_q
+from d3grasp.geometry import rot_z, wrap_angle
 from d3grasp.vocabulary import GRASP_TYPES
 
 if TYPE_CHECKING:
