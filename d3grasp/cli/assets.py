@@ -8,6 +8,7 @@
     d3grasp-assets list [DIR|MANIFEST]
     d3grasp-assets plan-grasps DIR|MANIFEST [--ids A,B] [--seed S] [--workers N] [--per-type K]
                                [--schedule legacy|evaluation] [--final-trials N]
+    d3grasp-assets plan-grasps DIR|MANIFEST --ids A,B --adopt OTHER/grasps.json
 
 Exit status: 0 success, 1 validation failure, 2 bad input (one line ``error: <file>: <reason>``;
 nothing written), 3 ``import --skip-invalid`` wrote some meshes and refused others (one line
@@ -192,10 +193,11 @@ def _add_schedule_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--schedule",
         choices=SCHEDULES,
-        default="legacy",
-        help="legacy: 3 trials per finalist without the evaluation's draws (the shipped plan); "
-        "evaluation: successive halving under the evaluation's draws, the camera's and the true "
-        "pose's placements and its 2 s pushes, each kept grasp with 16 trials and a measured rate",
+        default="evaluation",
+        help="evaluation (default; the shipped library's rigid objects): successive halving under "
+        "the evaluation's draws, the camera's and the true pose's placements and its 2 s pushes, "
+        "each kept grasp with 16 trials and a measured rate; legacy: 3 trials per finalist without "
+        "the evaluation's draws (the plan before 2026-12-08, ~3x cheaper)",
     )
     p.add_argument(
         "--final-trials",
@@ -217,6 +219,8 @@ def cmd_plan_grasps(args: argparse.Namespace) -> int:
             "assets_usd/ of a source checkout to replan the shipped library"
         )
     ids = [i for i in args.ids.split(",") if i] if args.ids else None
+    if args.adopt is not None:
+        return _adopt_plans(_resolve_manifest(args.path), Path(args.adopt), ids)
     return _plan_grasps(
         _resolve_manifest(args.path),
         ids,
@@ -228,13 +232,28 @@ def cmd_plan_grasps(args: argparse.Namespace) -> int:
     )
 
 
+def _adopt_plans(manifest: Path, source: Path, ids: list[str] | None) -> int:
+    """Copy the plans of ``ids`` from another grasp file, each with its own planner settings."""
+    from d3grasp.envs.grasp_file import GraspFileError
+    from d3grasp.planner.plan import adopt_plans
+
+    if not ids:
+        return _error("--adopt takes the plans of the objects named by --ids: give --ids")
+    try:
+        path = adopt_plans(manifest, source, ids)
+    except (GraspFileError, ValueError) as exc:
+        return _error(str(exc))
+    print(f"{len(ids)} plans adopted from {source} into {path}, each with the planner settings it records")
+    return 0
+
+
 def _plan_grasps(
     manifest: Path,
     ids: list[str] | None,
     seed: int = 0,
     workers: int | None = None,
     per_type: int | None = None,
-    schedule: str = "legacy",
+    schedule: str = "evaluation",
     final_trials: int | None = None,
 ) -> int:
     """Plan ``ids`` (None: every object) of a library and print how many lifted and held."""
@@ -371,8 +390,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-plan-grasps",
         dest="plan_grasps",
         action="store_false",
-        help="skip planning the new objects' grasps (plan-grasps; ~40 s a rigid object on 2 cores, "
-        "~77 s with --schedule evaluation, minutes a soft one): "
+        help="skip planning the new objects' grasps (plan-grasps; ~80 s a rigid object on 2 cores, "
+        "~40 s with --schedule legacy, minutes a soft one): "
         "until planned they get the geometric rule's grasp",
     )
     p.add_argument(
@@ -411,6 +430,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=None, help="processes (default: the machine's cores)")
     p.add_argument("--per-type", type=int, default=None, help="candidates per grasp type (default 10)")
     _add_schedule_args(p)
+    p.add_argument(
+        "--adopt",
+        metavar="GRASPS_JSON",
+        help="instead of planning, copy the plans of --ids from this other grasp file, each keeping "
+        "the planner settings it was measured under (a later plan-grasps under the file's settings "
+        "replans them)",
+    )
     p.set_defaults(func=cmd_plan_grasps)
     return ap
 

@@ -372,11 +372,13 @@ def plan_grasps(
     environment = trial_environment(cfg.scoring)
 
     def current(rec: dict[str, Any] | None, oid: str) -> bool:
-        """A record measured on this asset under these simulation and rule settings."""
+        """A record measured on this asset under these simulation, rule and planner settings (a
+        record adopted from another plan, :func:`adopt_plans`, carries its own planner settings)."""
         return (
             rec is not None
             and rec.get("asset_sha256") == sha[oid]
             and not changed_settings(rec.get("environment"), environment)
+            and rec.get("planner", settings) == settings
         )
 
     # Fixed groups of the whole selection in library order (rigid objects first: a FEM step costs
@@ -446,4 +448,34 @@ def plan_grasps(
             bar.update(len(units[k]))
 
         run_units(plan_unit, [(str(manifest), unit, cfg) for unit in units], workers, done_unit)
+    return path
+
+
+def adopt_plans(manifest: str | Path, source: str | Path, ids: Sequence[str]) -> Path:
+    """Take the records of ``ids`` from another grasp file ``source`` (e.g. the plan of a slower
+    schedule kept for the soft objects) into the library's grasp file, each carrying the planner
+    settings it was measured under as its own ``planner`` (the file's ``planner`` stays the one the
+    others were planned with, and a later ``plan_grasps`` under those replans these). Only records
+    measured on the library's current asset files are taken; returns the grasp file's path."""
+    from d3grasp.authoring.manifest import read_manifest, resolve_asset_path
+    from d3grasp.authoring.precision import stable_json
+    from d3grasp.files import atomic_write_text
+
+    manifest = Path(manifest).resolve()
+    path = grasp_file_path(manifest)
+    if not path.is_file():
+        raise ValueError(f"{path}: no grasp file to adopt plans into (plan the library first)")
+    data = read_grasp_file(path)
+    other = read_grasp_file(source)
+    entries = {e.id: e for e in read_manifest(manifest)}
+    for oid in ids:
+        rec = other["objects"].get(oid)
+        if oid not in entries or rec is None:
+            raise ValueError(f"{source}: no plan of '{oid}' (or '{oid}' is not in {manifest.name})")
+        if rec.get("asset_sha256") != asset_sha256(resolve_asset_path(manifest, entries[oid])):
+            raise ValueError(f"{source}: the plan of '{oid}' was measured on another asset file")
+        data["objects"][oid] = {**rec, "planner": rec.get("planner", other.get("planner"))}
+    order = {oid: k for k, oid in enumerate(entries)}
+    data["objects"] = dict(sorted(data["objects"].items(), key=lambda kv: order.get(kv[0], math.inf)))
+    atomic_write_text(path, json.dumps(stable_json(data), indent=1) + "\n")
     return path

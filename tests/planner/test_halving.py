@@ -161,11 +161,20 @@ def test_schedules_round_trip_through_the_grasp_file_record() -> None:
         PlannerConfig(schedule="evaluation")
 
 
-def test_the_default_planner_records_as_the_shipped_plan_was_made() -> None:
-    """New planner settings left at their defaults (legacy schedule, no synthesis) leave the record
-    as it was: the shipped grasp file counts as planned under the default planner."""
+def test_the_shipped_plan_records_the_schedules_it_was_made_with() -> None:
+    """The shipped grasp file: its rigid objects planned under the evaluation schedule (the
+    command line's default, seed 0), its soft objects kept from the legacy plan, each recording
+    the legacy planner's settings, which the default ``PlannerConfig`` still writes as before the
+    schedules existed."""
+    from d3grasp.authoring.manifest import read_manifest
     from d3grasp.envs.grasp_file import grasp_file_path, read_grasp_file
     from d3grasp.paths import default_manifest
 
-    shipped = read_grasp_file(grasp_file_path(default_manifest()))["planner"]
-    assert shipped == PlannerConfig().record()
+    data = read_grasp_file(grasp_file_path(default_manifest()))
+    assert data["planner"] == evaluation_planner(seed=0).record()
+    kinds = {e.id: e.kind for e in read_manifest(default_manifest())}
+    own = {oid: rec.get("planner") for oid, rec in data["objects"].items()}
+    assert {oid for oid, p in own.items() if p is not None} == {
+        i for i, k in kinds.items() if k == "deformable"
+    }
+    assert all(p == PlannerConfig().record() for p in own.values() if p is not None)

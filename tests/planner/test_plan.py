@@ -15,7 +15,15 @@ from d3grasp.envs.baseline import BaselineConfig
 from d3grasp.envs.config import SimConfig
 from d3grasp.envs.grasp_file import grasp_file_path, load_grasp_plan, read_grasp_file
 from d3grasp.paths import default_manifest
-from d3grasp.planner.plan import PlannerConfig, _differing, config_of_record, plan_grasps, same_trials
+from d3grasp.planner.plan import (
+    PlannerConfig,
+    _differing,
+    adopt_plans,
+    config_of_record,
+    evaluation_planner,
+    plan_grasps,
+    same_trials,
+)
 from d3grasp.planner.score import trial_score
 
 BOX = "box_01"  # 9.5 x 3.4 x 6.6 cm, 138 g: the top hook and the side wrap both lift it (measured)
@@ -122,3 +130,47 @@ def test_differing_names_the_changed_settings() -> None:
     assert _differing(old, new) == ["candidates.per_type", "extra"]
     assert _differing(None, new) == ["the planner record"]
     assert _differing(new, new) == []
+
+
+def test_adopted_plans_keep_their_settings_and_are_replanned_under_the_files(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A library of two objects planned with seed 1; box_02's plan taken from a file of seed 0.
+    ids = [BOX, "box_02"]
+    manifest = json.loads(default_manifest().read_text())
+    manifest["assets"] = [a for a in manifest["assets"] if a["id"] in ids]
+    path = tmp_path / "manifest.json"
+    path.write_text(json.dumps(manifest))
+    for a in manifest["assets"]:
+        (tmp_path / a["path"]).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(default_manifest().parent / a["path"], tmp_path / a["path"])
+    shipped = read_grasp_file(grasp_file_path(default_manifest()))
+    mine = {**shipped, "planner": evaluation_planner(seed=1).record()}
+    mine["objects"] = {i: shipped["objects"][i] for i in ids}
+    grasps = grasp_file_path(path)
+    grasps.write_text(json.dumps(mine))
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({**shipped, "planner": PlannerConfig(seed=0).record()}))
+    adopt_plans(path, other, ["box_02"])
+    data = read_grasp_file(grasps)
+    assert data["planner"] == evaluation_planner(seed=1).record()
+    assert data["objects"]["box_02"]["planner"] == PlannerConfig(seed=0).record()
+    assert "planner" not in data["objects"][BOX]
+    assert load_grasp_plan(path) is not None and set(load_grasp_plan(path) or {}) == set(ids)
+    # Planning the library under the file's settings runs box_02 only (its record is of seed 0;
+    # the evaluation schedule plans each object in a group of its own).
+    asked: list[str] = []
+    monkeypatch.setattr(
+        "d3grasp.planner.plan.run_units",
+        lambda fn, args, workers, done: asked.extend(e["id"] for _, unit, _ in args for e in unit),
+    )
+    plan_grasps(path, None, evaluation_planner(seed=1), progress=False, log=lambda _: None)
+    assert asked == ["box_02"]
+    # A plan measured on another asset file is refused, nothing written.
+    before = grasps.read_bytes()
+    other.write_text(
+        json.dumps({**shipped, "objects": {"box_02": {**shipped["objects"]["box_02"], "asset_sha256": "0"}}})
+    )
+    with pytest.raises(ValueError, match="another asset file"):
+        adopt_plans(path, other, ["box_02"])
+    assert grasps.read_bytes() == before
