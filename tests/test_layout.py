@@ -1,6 +1,8 @@
 """The package's import structure: no cycles among module-level imports, the kernels import
-nothing of the package, and the environment, the controllers and the evaluation import nothing of
-the training side (not even inside functions)."""
+nothing of the package, the environment, the controllers and the evaluation import nothing of the
+training side, and vision nothing of the environment (these two anywhere in a file, inside
+functions too), and the package finds its mapped folders through the install, not by changing its
+own ``__path__``."""
 
 from __future__ import annotations
 
@@ -33,6 +35,28 @@ def _module_level_imports(path: Path, known: set[str]) -> set[str]:
         else:
             continue
         out |= {n for n in names if n in known}
+    return out
+
+
+def _run_time_imports(path: Path) -> set[str]:
+    """Every module a file imports when it runs: at module level and inside functions, but not under
+    ``if TYPE_CHECKING:`` (annotations only)."""
+    out: set[str] = set()
+    tree = ast.parse(path.read_text())
+    typing_only = {
+        id(n)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING"
+        for stmt in node.body
+        for n in ast.walk(stmt)
+    }
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out |= {node.module} | {f"{node.module}.{a.name}" for a in node.names}
     return out
 
 
@@ -84,15 +108,28 @@ def test_geometry_is_a_leaf() -> None:
 
 
 def test_evaluation_needs_nothing_of_training() -> None:
-    mods = _modules()
-    for name, path in mods.items():
-        if not name.startswith(("d3grasp.envs", "d3grasp.eval", "d3grasp.controllers", "d3grasp.policies")):
-            continue
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module:
-                assert not node.module.startswith("d3grasp.train"), (name, node.module)
-            elif isinstance(node, ast.Import):
-                assert not any(a.name.startswith("d3grasp.train") for a in node.names), name
+    for name, path in _modules().items():
+        if name.startswith(("d3grasp.envs", "d3grasp.eval", "d3grasp.controllers", "d3grasp.policies")):
+            assert not any(i.startswith("d3grasp.train") for i in _run_time_imports(path)), name
+
+
+def test_vision_needs_nothing_of_the_environment() -> None:
+    """envs uses vision (the camera, the footprint registration), never the reverse: vision reads
+    the environment's config through annotations only."""
+    for name, path in _modules().items():
+        if name.startswith("d3grasp.vision"):
+            imported = _run_time_imports(path)
+            assert not any(i.startswith("d3grasp.envs") for i in imported), (name, imported)
+
+
+def test_the_walk_sees_imports_inside_functions(tmp_path: Path) -> None:
+    src = tmp_path / "m.py"
+    src.write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import d3grasp.envs.config\n"
+        "def f():\n    from d3grasp.envs.grasps import rest_height\n"
+    )
+    assert "d3grasp.envs.grasps" in _run_time_imports(src)
+    assert "d3grasp.envs.config" not in _run_time_imports(src)
 
 
 def test_every_package_is_installed() -> None:
@@ -109,20 +146,15 @@ def test_every_package_is_installed() -> None:
     assert found <= listed, f"packages missing from pyproject.toml: {sorted(found - listed)}"
 
 
-def test_the_checkout_itself_resolves_the_mapped_packages() -> None:
-    """`python -m d3grasp...` in the repository root imports the source folder ahead of any installed
-    copy: the folders pyproject maps under d3grasp must resolve from there too. Checked in a bare
-    interpreter (no site-packages, so no editable-install finder) with only the checkout on the path."""
-    import subprocess
-    import sys
+def test_the_mapped_folders_resolve_through_the_install() -> None:
+    """kernels/, train/ and assets_usd/ import as d3grasp.* through pyproject's package-dir (the
+    editable install maps them to the checkout's folders), and the package does not append anything
+    to its own ``__path__`` (which made every folder of the checkout importable as d3grasp.*)."""
+    import importlib.util
 
-    code = (
-        "import importlib.util, sys; sys.path.insert(0, sys.argv[1]); "
-        "print(*(importlib.util.find_spec(n).origin for n in sys.argv[2:]), sep='\\n')"
-    )
+    init = ast.parse((REPO / "d3grasp" / "__init__.py").read_text())
+    assert not any(isinstance(n, ast.Name) and n.id == "__path__" for n in ast.walk(init))
     names = [package for folder, package in ROOTS.items() if folder != "d3grasp"] + ["d3grasp.assets_usd"]
-    out = subprocess.run(
-        [sys.executable, "-S", "-c", code, str(REPO), *names], capture_output=True, text=True, check=True
-    ).stdout.split()
-    folders = [Path(o).parent.name for o in out]
-    assert folders == ["kernels", "train", "assets_usd"]
+    origins = [importlib.util.find_spec(n).origin for n in names]
+    assert [Path(o).parent for o in origins] == [REPO / "kernels", REPO / "train", REPO / "assets_usd"]
+    assert importlib.util.find_spec("d3grasp.tools") is None  # a root folder not mapped stays outside

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 import warp as wp
 
-from d3grasp.envs.config import CameraConfig
 from d3grasp.vision.camera import (
     CameraIntrinsics,
     RGBDCamera,
@@ -25,6 +25,9 @@ from d3grasp.vision.camera import (
     perturb_pose,
 )
 from d3grasp.vision.localisation import ObjectEstimate, localise_object
+
+if TYPE_CHECKING:  # the environment's config is read, never imported: envs imports vision, not back
+    from d3grasp.envs.config import CameraConfig
 
 PARK_HEIGHT = 50.0  # m the hand's bodies are lifted for the snapshot: far outside every camera frustum
 
