@@ -76,7 +76,7 @@ def collect(
                 touching = np.linalg.norm(force, axis=-1) > touch_force
                 newly = touching & (first < 0) & (t[:, None] > g0)
                 first[newly] = np.broadcast_to(((t - g0) / 60.0)[:, None], first.shape)[newly]
-                now = ~done & (t >= env.lift_start.numpy())
+                now = ~done & (t >= env.scoring.now.lift_start.numpy())
                 if now.any():
                     q = env.t_joint_q[env.i_finger_q].view(W, -1).double().numpy()
                     rec["q"][now], rec["force"][now] = q[now], force[now]

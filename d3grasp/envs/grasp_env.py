@@ -204,7 +204,7 @@ class GraspEnv:
         wa.joint_q, wa.joint_qd = ph.state_0.joint_q, ph.state_0.joint_qd
         wa.body_q, wa.body_qd = ph.state_0.body_q, ph.state_0.body_qd
         wa.finger_q, wa.finger_dof = index(lay.finger_q), index(lay.finger_dof)
-        wa.link_bodies, wa.palm_body = index(lay.link_bodies), self.score_inputs.palm_body  # one palm index
+        wa.link_bodies, wa.palm_body = index(lay.link_bodies), self.scoring.inputs.palm_body  # one palm index
         wa.object_body, wa.soft_slot = index(np.maximum(lay.object_body, 0)), index(se.world_soft_slot)
         pose = getattr(se, "pose_buf", None)
         wa.soft_com, wa.soft_quat = soft(pose, "com", wp.vec3), soft(pose, "quat", wp.quat)
@@ -212,7 +212,7 @@ class GraspEnv:
         strain = getattr(se, "strain_buf", None)
         wa.soft_eps, wa.soft_sigma = soft(strain, "object_eps"), soft(strain, "sigma")
         wa.soft_node_count = soft(se.strain_layout, "object_node_count")
-        wa.lift_start = self.score_state.lift_start
+        wa.lift_start = self.scoring.state.lift_start
         wa.phase = wp.from_torch(self.kernel_tables["phase"])
         wa.last_row = self.script.max_episode_length + 1
         self.world_arrays = wa
@@ -307,11 +307,11 @@ class GraspEnv:
     @property
     def nonfinite_resets(self) -> int:
         """Worlds reset for a non-finite state since the environment was made."""
-        return int(self.t_nonfinite_count[0])
+        return int(self.scoring.now.nonfinite_count[0])
 
     def phase_of(self, t: torch.Tensor) -> torch.Tensor:
         """Phase index (into :data:`PHASES`) of every world at step ``t`` (its own lift start)."""
-        return self.script.phase_of(t, self.lift_start)
+        return self.script.phase_of(t, self.scoring.now.lift_start)
 
     def action_takes_effect(self) -> torch.Tensor:
         """(W,) bool: whether the action of the coming step moves anything. In the residual modes the
@@ -404,7 +404,9 @@ class GraspEnv:
         mdp_actions.apply_actions(self, actions)
         t = self.episode_length_buf
         self.root_cmd_pos = (
-            self.script.palm_command(t + 1, self.grasp_palm_pos, self.approach_dir, self.lift_start)
+            self.script.palm_command(
+                t + 1, self.grasp_palm_pos, self.approach_dir, self.scoring.now.lift_start
+            )
             + self.palm_offset
         )
         self._command_palm(self.root_cmd_pos)
@@ -412,7 +414,7 @@ class GraspEnv:
         # a push its test is over and the push stops. Pushed on, a lost 1.5 g sponge (sponge_cube_s)
         # reached kilometres in the remaining pushes and the simulation broke (measured).
         push = self.script.disturbance(t + 1, self.disturb_order)
-        self.t_object_force[:] = push * (self.lift_ok & self.disturb_ok)[:, None]
+        self.t_object_force[:] = push * (self.scoring.now.lift_ok & self.scoring.now.disturb_ok)[:, None]
 
         self._launch_step()
         self.episode_length_buf = self.episode_length_buf + 1

@@ -376,11 +376,13 @@ def test_disturbance_force_pushes_a_free_object():
 def test_held_object_contact_forces_carry_its_weight():
     """The exported contact forces on a held box, summed over every contact row (rigid rows: the force
     on shape0's body), carry its weight. SolverVBD's hard AVBD contacts export their multipliers, whose
-    vertical sum on a held object reads above m g at finite iterations (3.0 N on average, 4.4 N at most
-    against box_01's 1.37 N at 5 iterations, converging with iterations: 2.4 / 1.8 N at 10 / 20;
-    resting on the table the sum is exact). The bounds below hold that residual and fail on a broken
+    sum on a held object converges to the weight with the solver's iterations but not at the task's 5
+    (box_01 in its planned top grasp of 2026-12-08, vertical / horizontal sum against its 1.37 N
+    weight: 5.5 / 2.2 N at 5 iterations, 2.5 / 0.55 N at 10, 1.7 / 0.9 N at 20; resting on the table
+    the sum is exact). Measured at 20 iterations, the bounds hold that residual and fail on a broken
     export (a sign, a frame, a missing row: zero, negative or many times the weight)."""
-    env = _box_env()
+    with pytest.warns(UserWarning, match="sim.iterations"):  # the grasp was planned at 5 iterations
+        env = _box_env(sim__iterations=20)
     ctl = RuleBasedController(env)
     obs = env.get_observations()
     for _ in range(env.phase_start["hold"] + 5):
@@ -400,7 +402,7 @@ def test_held_object_contact_forces_carry_its_weight():
     weight = float(env.model.body_mass.numpy()[obj]) * 9.81
     lifted = env.object_state()[0][0, 2] - env.object_start[0, 2]
     assert lifted > 0.08
-    assert 0.8 * weight < net[2] < 4.0 * weight, (net, weight)
+    assert 0.8 * weight < net[2] < 2.0 * weight, (net, weight)
     assert np.hypot(net[0], net[1]) < weight, (net, weight)
 
 

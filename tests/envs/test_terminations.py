@@ -81,9 +81,9 @@ def _run(env, object_path, palm_path, object_pads, table_pads=None):
         f_true[:] = object_pads(t) + (table_pads(t) if table_pads else 0.0)
         body_q[:, :3] = palm_path(t)
         body_q[:, 6] = 1.0
-        env.t_score_in["t"][:] = tt
-        env.t_score_in["obj_pos"][:] = object_path(t)
-        env.t_score_in["finite"][:] = True
+        env.scoring.step_inputs["t"][:] = tt
+        env.scoring.step_inputs["obj_pos"][:] = object_path(t)
+        env.scoring.step_inputs["finite"][:] = True
         terminations.score(env)
         env.episode_length_buf = tt
     return terminations.episode_records(env, torch.arange(W))
@@ -161,11 +161,13 @@ def test_lift_starts_once_the_pads_show_a_grasp_for_the_settle_time() -> None:
 
     zero = lambda t: torch.zeros(2, 3)  # noqa: E731
     _run(env, zero, zero, object_pads)
-    assert int(env.lift_start[0]) == touch_at + settle  # the step after `settle` steps of touch
-    assert int(env.lift_start[1]) == env.phase_start["lift"]  # no grasp: the grasp phase's time out
+    assert int(env.scoring.now.lift_start[0]) == touch_at + settle  # the step after `settle` steps of touch
+    assert (
+        int(env.scoring.now.lift_start[1]) == env.phase_start["lift"]
+    )  # no grasp: the grasp phase's time out
     # The phase follows each world's own lift start.
     t = torch.tensor([touch_at + settle, touch_at + settle])
-    phases = env.script.phase_of(t, env.lift_start)
+    phases = env.script.phase_of(t, env.scoring.now.lift_start)
     assert phases.tolist() == [2, 1]  # lift, grasp
 
 
@@ -210,7 +212,7 @@ def test_records_name_the_pads_touching_at_the_lift_start_and_end() -> None:
 
     zero = lambda t: torch.zeros(1, 3)  # noqa: E731
     (rec,) = _run(env, zero, zero, object_pads)
-    assert int(env.lift_start[0]) == lift0 < hold0
+    assert int(env.scoring.now.lift_start[0]) == lift0 < hold0
     assert rec["pads_at_lift"] == [PAD_NAMES[index_tip], PAD_NAMES[thumb]]
     assert rec["pads_at_hold"] == [PAD_NAMES[index_tip], PAD_NAMES[middle_tip]]
     assert rec["s_grasp"]  # thumb and an opposing pad at the lift's start

@@ -294,16 +294,17 @@ def _reset_bookkeeping(env: GraspEnv, env_ids: torch.Tensor) -> None:
     if env.residual_base is not None:
         env.residual_base.reset(env_ids)
     env.t_object_force[env_ids] = 0.0
-    env.s_grasp[env_ids] = False
-    env.pads_at_lift[env_ids] = False
-    env.pads_at_hold[env_ids] = False
-    env.lift_start[env_ids] = env.phase_start["lift"]
-    env.touch_steps[env_ids] = 0
-    env.max_rise[env_ids] = 0.0
-    env.max_push_motion[env_ids] = 0.0
-    env.lift_ok[env_ids] = True
-    env.disturb_ok[env_ids] = True
-    env.failure_code[env_ids] = 0
+    now = env.scoring.now
+    now.s_grasp[env_ids] = False
+    now.pads_at_lift[env_ids] = False
+    now.pads_at_hold[env_ids] = False
+    now.lift_start[env_ids] = env.phase_start["lift"]
+    now.touch_steps[env_ids] = 0
+    now.max_rise[env_ids] = 0.0
+    now.max_push_motion[env_ids] = 0.0
+    now.lift_ok[env_ids] = True
+    now.disturb_ok[env_ids] = True
+    now.failure[env_ids] = 0
     env.max_strain[env_ids] = 0.0
     env.episode_return[env_ids] = 0.0
 

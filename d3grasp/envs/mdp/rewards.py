@@ -85,7 +85,7 @@ def allocate(env: GraspEnv) -> None:
 
 
 def _launches(env: GraspEnv) -> None:
-    si = env.score_inputs
+    si = env.scoring.inputs
     ws.gather_reward_inputs(
         env.rw_gather_params,
         env.world_arrays,
@@ -101,7 +101,7 @@ def _launches(env: GraspEnv) -> None:
 def compute_rewards(env: GraspEnv) -> torch.Tensor:
     """The step's reward of every world (W,), non-finite values zeroed and clipped at ``reward_clip``;
     writes the scoring's inputs on the way: the step count, the object's position and finiteness."""
-    env.t_score_in["t"].copy_(env.episode_length_buf)
+    env.scoring.step_inputs["t"].copy_(env.episode_length_buf)
     env.reward_launch()
     total = torch.nan_to_num(env.t_reward_total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
     if env.cfg.residual_penalty:

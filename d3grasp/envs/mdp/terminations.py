@@ -1,14 +1,15 @@
 """Success scoring (the paper's s_grasp, s_lift, s_disturb), terminations and episode records.
 
 The rules and thresholds live in the Warp kernel of ``d3grasp.kernels.scoring`` (with its NumPy twin);
-here its buffers are allocated, with torch views under the names the rest of the environment reads
-(``env.s_grasp``, ``env.lift_ok``, ``env.lift_start``, ...), its inputs are filled each step and its
-launch is replayed as a graph: as torch operations the scoring cost ~0.2 ms a step, a tenth of a
-1-world step's physics.
+here its buffers are allocated as the environment's ``env.scoring`` (:class:`Scoring`: the kernel's
+arrays and their torch views, ``env.scoring.now.lift_ok``, ``.lift_start``, ...), its inputs are
+filled each step and its launch is replayed as a graph: as torch operations the scoring cost ~0.2 ms
+a step, a tenth of a 1-world step's physics.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -70,22 +71,43 @@ def pad_roles() -> np.ndarray:
     return role
 
 
-# The scoring state's torch views on the environment, by field of ``ScoreState``.
-_STATE_VIEWS = {
-    "lift_start": "lift_start",  # the step each world's lift starts (touch-timed)
-    "touch_steps": "touch_steps",  # steps in a row the pads have shown a grasp before it
-    "s_grasp": "s_grasp",
-    "pads_at_lift": "pads_at_lift",  # which pads touch the object when the lift starts
-    "pads_at_hold": "pads_at_hold",  # ... and when it ends
-    "max_rise": "max_rise",
-    "lift_ok": "lift_ok",
-    "disturb_ok": "disturb_ok",
-    "push_ref": "push_ref",
-    "max_push_motion": "max_push_motion",  # m: the most the object moved against the palm in a push
-    "failure": "failure_code",  # the first failure cause (FAILURES[c - 1]; 0: none)
-    "nonfinite_count": "t_nonfinite_count",
-    "done": "t_done",
-}
+@dataclass
+class ScoreViews:
+    """The scoring state as torch views, a row per world (the fields of ``kernels.scoring.ScoreState``,
+    which resets write and the episode records read)."""
+
+    lift_start: torch.Tensor  # the step each world's lift starts (touch-timed)
+    touch_steps: torch.Tensor  # steps in a row the pads have shown a grasp before it
+    s_grasp: torch.Tensor
+    pads_at_lift: torch.Tensor  # which pads touch the object when the lift starts
+    pads_at_hold: torch.Tensor  # ... and when it ends
+    max_rise: torch.Tensor
+    lift_ok: torch.Tensor
+    disturb_ok: torch.Tensor
+    push_ref: torch.Tensor
+    max_push_motion: torch.Tensor  # m: the most the object moved against the palm in a push
+    failure: torch.Tensor  # the first failure cause (FAILURES[c - 1]; 0: none)
+    nonfinite_count: torch.Tensor  # (1,): non-finite states met since the environment was made
+    done: torch.Tensor  # whether the step ended the episode
+
+    @classmethod
+    def of(cls, state: sk.ScoreState) -> ScoreViews:
+        return cls(**{f.name: wp_view(getattr(state, f.name)) for f in fields(cls)})
+
+
+@dataclass
+class Scoring:
+    """What the scoring owns on the environment (``env.scoring``): the kernel's parameters, schedule,
+    inputs and state, the state's torch views (``now``), the torch views of the inputs written each
+    step (``step_inputs``: ``t``, ``obj_pos``, ``finite``, ``rule_settled``) and the replayed launch."""
+
+    params: sk.ScoreParams
+    schedule: sk.ScoreSchedule
+    inputs: sk.ScoreInputs
+    state: sk.ScoreState
+    now: ScoreViews
+    step_inputs: dict[str, torch.Tensor]
+    launch: Replayed
 
 
 def score_params(
@@ -106,21 +128,20 @@ def score_params(
 
 
 def allocate(env: GraspEnv) -> None:
-    """The scoring kernel's parameters, inputs and state, the state's torch views on ``env`` and the
-    launch captured as a graph. Reads the script, the sensors' pad forces, the state's body poses,
-    and ``env.object_start`` and ``env.disturb_order`` (which resets write in place)."""
+    """``env.scoring`` (:class:`Scoring`), its launch captured as a graph. Reads the script, the
+    sensors' pad forces, the state's body poses, and ``env.object_start`` and ``env.disturb_order``
+    (which resets write in place)."""
     W, dev, script, ph = env.num_envs, env.wp_device, env.script, env.cfg.phases
     prm = score_params(script, ph, env.dt, env.cfg.eval_mode, lift_on_pads=env.cfg.rule.stop_on == "touch")
     tab = script.tables(env.torch_device)
-    env.score_params = prm
-    env.score_schedule = sk.ScoreSchedule(
+    schedule = sk.ScoreSchedule(
         in_hold_score=wp.from_torch(tab.in_hold_score),
         in_push_score=wp.from_torch(tab.in_push_score),
         push_started=wp.from_torch(tab.push_started),
         scored_push=wp.from_torch(tab.scored_push),
         pad_role=wp.array(pad_roles(), dtype=wp.int32, device=dev),
     )
-    env.score_inputs = sk.ScoreInputs(
+    inputs = sk.ScoreInputs(
         t=wp.zeros(W, dtype=wp.int64, device=dev),
         obj_pos=wp.zeros(W, dtype=wp.vec3, device=dev),
         finite=wp.zeros(W, dtype=wp.bool, device=dev),
@@ -132,36 +153,37 @@ def allocate(env: GraspEnv) -> None:
         object_start=wp.from_torch(env.object_start, dtype=wp.vec3),
         disturb_order=wp.from_torch(env.disturb_order),
     )
-    env.score_state = sk.ScoreState.allocate(W, NUM_PADS, script.phase_start["lift"], dev)
-    for field, name in _STATE_VIEWS.items():
-        setattr(env, name, wp_view(getattr(env.score_state, field)))
-    inp = env.score_inputs
-    env.t_score_in = {
-        name: wp_view(getattr(inp, name)) for name in ("t", "obj_pos", "finite", "rule_settled")
-    }
-    env.score_launch = Replayed(
-        lambda: sk.score_step(env.score_params, env.score_schedule, env.score_inputs, env.score_state),
-        [sk],
-        dev,
-        env.cfg.sim.use_graph,
+    state = sk.ScoreState.allocate(W, NUM_PADS, script.phase_start["lift"], dev)
+    env.scoring = Scoring(
+        params=prm,
+        schedule=schedule,
+        inputs=inputs,
+        state=state,
+        now=ScoreViews.of(state),
+        step_inputs={
+            name: wp_view(getattr(inputs, name)) for name in ("t", "obj_pos", "finite", "rule_settled")
+        },
+        launch=Replayed(
+            lambda: sk.score_step(prm, schedule, inputs, state), [sk], dev, env.cfg.sim.use_graph
+        ),
     )
 
 
 def score(env: GraspEnv) -> torch.Tensor:
     """Update every world's success metrics after the step; return which worlds' episodes ended. The
-    step count, the object's position and whether the state is finite (``env.t_score_in["t"]``,
-    ``["obj_pos"]``, ``["finite"]``) are written before, by ``rewards.compute_rewards`` (its gather
-    reads them too)."""
-    i = env.t_score_in
+    step count, the object's position and whether the state is finite (``env.scoring.step_inputs``'
+    ``"t"``, ``"obj_pos"``, ``"finite"``) are written before, by ``rewards.compute_rewards`` (its
+    gather reads them too)."""
+    i = env.scoring.step_inputs
     if env.residual_base is not None:
         # The rule runs inside the env (residual action modes): a hand closed as far as the object
         # lets it is ready to lift too (a hook or a palm grasp need not touch with the thumb's pads).
         i["rule_settled"].copy_(env.residual_base.settled())
-    env.score_launch()
+    env.scoring.launch()
     sensors = env.sensors
     if sensors.strain_layout is not None:
         env.max_strain = torch.maximum(env.max_strain, sensors.soft_scalar(sensors.strain_buf.object_eps))
-    return env.t_done.clone()
+    return env.scoring.now.done.clone()
 
 
 def _pad_list(touching: np.ndarray) -> list[str]:
@@ -175,21 +197,22 @@ def episode_records(env: GraspEnv, finished: torch.Tensor) -> list[dict[str, Any
     # One host copy of each per-world quantity (reading a tensor element is a call each).
     w_all = finished.tolist()
     idx = finished.cpu()
+    now = env.scoring.now
     host = {
-        name: getattr(env, name).detach().cpu()[idx].numpy()
-        for name in (
-            "episode_length_buf",
-            "s_grasp",
-            "lift_ok",
-            "disturb_ok",
-            "failure_code",
-            "pads_at_lift",
-            "pads_at_hold",
-            "max_strain",
-            "max_rise",
-            "max_push_motion",
-            "episode_return",
-            "grasp_id",
+        name: x.detach().cpu()[idx].numpy()
+        for name, x in (
+            ("episode_length_buf", env.episode_length_buf),
+            ("s_grasp", now.s_grasp),
+            ("lift_ok", now.lift_ok),
+            ("disturb_ok", now.disturb_ok),
+            ("failure", now.failure),
+            ("pads_at_lift", now.pads_at_lift),
+            ("pads_at_hold", now.pads_at_hold),
+            ("max_strain", env.max_strain),
+            ("max_rise", now.max_rise),
+            ("max_push_motion", now.max_push_motion),
+            ("episode_return", env.episode_return),
+            ("grasp_id", env.grasp_id),
         )
     }
     for j, w in enumerate(w_all):
@@ -200,7 +223,7 @@ def episode_records(env: GraspEnv, finished: torch.Tensor) -> list[dict[str, Any
             s_lift and bool(host["disturb_ok"][j]) and t >= start["release"] and env.script.disturb_dirs > 0
         )
         # A failed episode without a recorded cause was cut short before its hold: not lifted.
-        label = failure_label(int(host["failure_code"][j]))
+        label = failure_label(int(host["failure"][j]))
         failure = None if s_disturb else label or (None if s_lift else "not lifted")
         records.append(
             {
