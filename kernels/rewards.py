@@ -47,7 +47,7 @@ Default coefficients put each term at O(0.01-1) per control step in a typical gr
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import warp as wp
@@ -106,22 +106,7 @@ class RewardConfig:
     lift_height: float = 0.1  # h_l [m]
 
     def __post_init__(self) -> None:
-        for name in (
-            "alive",
-            "joint_pos",
-            "joint_vel",
-            "distance",
-            "contact_gain",
-            "contact_penalty",
-            "max_force",
-            "symmetry",
-            "symmetry_min_force",
-            "stability_lin",
-            "stability_ang",
-            "collision",
-            "deform",
-            "lift",
-        ):
+        for name in _SCALARS:
             if getattr(self, name) < 0.0:
                 raise ValueError(f"RewardConfig.{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.distance_floor < self.safe_distance:
@@ -146,43 +131,13 @@ class RewardConfig:
         return m
 
 
-@wp.struct
-class _Params:
-    alive: float
-    joint_pos: float
-    joint_vel: float
-    contact_gain: float
-    contact_penalty: float
-    max_force: float
-    symmetry: float
-    symmetry_min_force: float
-    stability_lin: float
-    stability_ang: float
-    collision: float
-    safe_distance: float
-    distance_floor: float
-    deform: float
-    lift: float
-    lift_height: float
-
-
-_PARAM_NAMES = (
-    "alive",
-    "joint_pos",
-    "joint_vel",
-    "contact_gain",
-    "contact_penalty",
-    "max_force",
-    "symmetry",
-    "symmetry_min_force",
-    "stability_lin",
-    "stability_ang",
-    "collision",
-    "safe_distance",
-    "distance_floor",
-    "deform",
-    "lift",
-    "lift_height",
+# The scalar coefficients, declared once as RewardConfig's float fields: each is checked >= 0 and
+# carried to the kernels in _Params under its own name, but for the distance weight, which the
+# kernels read per link (RewardConfig.link_weights).
+_SCALARS: tuple[str, ...] = tuple(f.name for f in fields(RewardConfig) if f.type in (float, "float"))
+_PARAM_NAMES: tuple[str, ...] = tuple(n for n in _SCALARS if n != "distance")
+_Params = wp.struct(
+    type("_Params", (), {"__annotations__": dict.fromkeys(_PARAM_NAMES, float), "__module__": __name__})
 )
 
 

@@ -161,3 +161,22 @@ def test_config_validation() -> None:
         RewardConfig(distance_link_weights=(1.0, 2.0)).link_weights(L)
     with pytest.raises(ValueError, match="missing reward inputs"):
         make_inputs(alive=np.ones(2))
+
+
+def test_each_coefficient_is_declared_once_and_reaches_the_kernels() -> None:
+    """RewardConfig's float fields are the coefficients: each is refused below zero and carried to the
+    kernels' parameter struct under its own name (the distance weight per link instead)."""
+    import dataclasses
+
+    from d3grasp.kernels import rewards as rk
+
+    floats = [f.name for f in dataclasses.fields(RewardConfig) if f.type in (float, "float")]
+    assert "alive" in floats and "lift_height" in floats and "thumb_pads" not in floats
+    cfg = RewardConfig(**{name: 0.5 + k for k, name in enumerate(floats) if name != "distance_floor"})
+    prm = rk._params(cfg)
+    for name in floats:
+        if name != "distance":
+            assert getattr(prm, name) == pytest.approx(getattr(cfg, name)), name
+        with pytest.raises(ValueError, match=name):
+            RewardConfig(**{name: -1.0})
+    np.testing.assert_allclose(cfg.link_weights(3), [cfg.distance] * 3)
