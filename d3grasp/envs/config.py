@@ -256,6 +256,9 @@ class GraspEnvConfig:
     # stays where it is (the scene moves under it).
     scene_shift: tuple[float, float] = (0.0, 0.0)
     perception: str = "oracle"  # see PERCEPTION_MODES
+    # A registered pose estimator by name (d3grasp.vision.estimators.ESTIMATORS); None: the one
+    # perception and camera.register_footprint select (oracle, footprint or box_fit).
+    pose_estimator: str | None = None
     rule: BaselineConfig = field(default_factory=BaselineConfig)  # the rule, and the residual's prior
     action_mode: str = "synergy"  # see ACTION_MODES
     # rad of joint-target offset at a residual of 1 (residual, synergy modes). 0.1, the rule's own squeeze

@@ -50,6 +50,7 @@ from d3grasp.envs.sensors import Sensors, wp_view
 from d3grasp.geometry import quat_xyzw_to_matrix
 from d3grasp.kernels import rewards as rk
 from d3grasp.kernels import world_state as ws
+from d3grasp.vision.estimators import EstimatorScene, estimator_name, make_pose_estimator
 from d3grasp.vocabulary import GRASP_TYPES, METRICS, PHASES
 
 __all__ = ["PHASES", "GraspEnv"]
@@ -83,26 +84,14 @@ class GraspEnv:
         self.grasp_override: list | None = None
         self._build()
         self._allocate_buffers()
-        # Camera perception: the grasp planner reads the object's pose and size from a depth image.
-        self.perception = None
+        # What the planner is told of each placed object: the true pose or the camera's estimate
+        # (vision/estimators.py); the episodes' localisation records (camera only).
         self.loc_records: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
-        if cfg.perception == "camera":
-            from d3grasp.vision.perception import CameraPerception
-
-            self.perception = CameraPerception(
-                self.model, self.model.body_world.numpy(), self.layout.object_body, cfg.camera, cfg.seed
-            )
-        # Each world's object footprint in its own frame, for registering the camera's box fit.
-        self.footprints: list | None = None
-        if self.perception is not None and cfg.camera.register_footprint:
-            from d3grasp.vision.footprint import footprint_of_pieces, object_pieces
-
-            seen: dict[str, Any] = {}
-            self.footprints = []
-            for w, entry in enumerate(self.world_entries):
-                if entry.id not in seen:
-                    seen[entry.id] = footprint_of_pieces(object_pieces(self.model, self.layout, w))
-                self.footprints.append(seen[entry.id])
+        scene = EstimatorScene(
+            self.model, self.layout, [e.id for e in self.world_entries], cfg.camera, cfg.seed
+        )
+        name = estimator_name(cfg.perception, cfg.camera.register_footprint, cfg.pose_estimator)
+        self.pose_estimator = make_pose_estimator(name, scene)
         # Residual modes: the rule-based controller runs inside the env and the policy's actions are
         # offsets on its joint targets.
         self.residual_base = None
@@ -538,6 +527,7 @@ def _check_config(cfg: GraspEnvConfig, num_envs: int) -> None:
         raise ValueError(f"unknown grasp_source '{cfg.grasp_source}'; known: {list(GRASP_SOURCES)}")
     if cfg.perception not in PERCEPTION_MODES:
         raise ValueError(f"unknown perception '{cfg.perception}'; known: {list(PERCEPTION_MODES)}")
+    estimator_name(cfg.perception, cfg.camera.register_footprint, cfg.pose_estimator)  # a known one
     if cfg.rule.stop_on not in CLOSING_PRIORS:
         raise ValueError(f"unknown rule.stop_on '{cfg.rule.stop_on}'; known: {list(CLOSING_PRIORS)}")
 

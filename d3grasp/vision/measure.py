@@ -37,10 +37,10 @@ def measure(ids: list[str], noise: bool, seeds: int, batch: int, log=print) -> t
             for w, rec in enumerate(env.loc_records):
                 records.append({"object": chunk[w], "kind": env.world_entries[w].kind, "seed": seed, **rec})
             # Render time of one world's 320x240 depth image (the BVH refit included).
-            cam = env.perception.camera
+            perception = env.pose_estimator.perception
             t0 = time.perf_counter()
             for w in range(len(chunk)):
-                cam.render(env.state_0, [env.perception.pose], [w])
+                perception.camera.render(env.state_0, [perception.pose], [w])
             render_s += time.perf_counter() - t0
             renders += len(chunk)
             env.close()

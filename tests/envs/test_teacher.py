@@ -125,7 +125,7 @@ def test_the_footprint_registered_to_is_the_boxs_own(camera_env):
     the manifest's extents round the body origin."""
     env = camera_env
     ex = np.asarray(env.world_entries[0].extents[:2])
-    fp = env.footprints[0]
+    fp = env.pose_estimator.footprints[0]
     np.testing.assert_allclose(np.ptp(fp.outline, axis=0), ex, atol=2.0 * fp.cell)
     np.testing.assert_allclose(fp.centroid, 0.0, atol=fp.cell)
     assert fp.outside.min() == 0.0 and fp.outside.max() >= 2.0 * fp.cell

@@ -21,6 +21,7 @@ import warp as wp
 from d3grasp.envs.grasps import GraspPose, choose_grasp, grasp_pose, rest_height
 from d3grasp.envs.scene import OBJECT_SOFT, palm_world_pose_to_free_q, palm_world_pose_to_root_q
 from d3grasp.geometry import rot_z, wrap_angle
+from d3grasp.vision.estimators import PlacedObject
 from d3grasp.vocabulary import GRASP_TYPES
 
 if TYPE_CHECKING:
@@ -103,12 +104,15 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
     p0, n = int(lay.particle_start[w]), int(lay.particle_count[w])
     # A soft body's nodes at the new pose (its rest shape turned by the yaw).
     placed = lay.rest_particle_q[p0 : p0 + n] @ rot_z(yaw).T + obj_pos if soft else None
-    plan_pos, plan_yaw, plan_ex = obj_pos, yaw, ex
-    estimated = env.perception is not None
-    registered = False
+    # The planner sees the estimator's pose (vision/estimators.py); the truth only scores its error.
+    particles = (p0, placed) if soft else None
+    seen = env.pose_estimator.estimate(
+        env.state_0, PlacedObject(w, int(lay.object_body[w]), obj_pos, qz, yaw, ex, particles)
+    )
+    plan_pos, plan_yaw, plan_ex = seen.pos, seen.yaw, seen.extents
+    estimated, registered = seen.estimated, seen.registered
     if estimated:
-        # The planner sees the camera's estimate; the truth only scores its error.
-        plan_pos, plan_yaw, plan_ex, registered = _perceive(env, w, obj_pos, qz, yaw, ex, placed)
+        env.loc_records[w] = seen.record
     pose, used_yaw, place = _plan_grasp(
         env,
         w,
@@ -307,43 +311,3 @@ def _reset_bookkeeping(env: GraspEnv, env_ids: torch.Tensor) -> None:
     now.failure[env_ids] = 0
     env.max_strain[env_ids] = 0.0
     env.episode_return[env_ids] = 0.0
-
-
-def _perceive(
-    env: GraspEnv, w, obj_pos, qz, yaw, ex, placed_particles
-) -> tuple[np.ndarray, float, np.ndarray, bool]:
-    """Camera estimate of world ``w``'s freshly placed object for the planner: (position, yaw,
-    extents, registered); logs its error. Registered (``camera.register_footprint``): the box fit
-    turned into the body's pose with the object's footprint (vision/footprint.py); otherwise the
-    fit's centre, yaw and sizes as seen.
-
-    ``placed_particles``: a soft object's nodes at the new pose (None for a rigid object).
-    """
-    from d3grasp.vision.footprint import register
-    from d3grasp.vision.perception import localisation_error
-
-    lay = env.layout
-    soft = placed_particles is not None
-    est = env.perception.observe(
-        env.state_0,
-        w,
-        int(lay.object_body[w]),
-        None if soft else np.concatenate([obj_pos, qz]),
-        (int(lay.particle_start[w]), placed_particles) if soft else None,
-        fallback_extents=np.full(3, 0.06),
-    )
-    err = localisation_error(est, obj_pos, yaw, ex)
-    env.loc_records[w] = {"perception": "camera", "loc_ok": bool(est.ok), **err.as_record()}
-    if env.footprints is None or not est.ok:
-        return est.centre, est.yaw, est.extents, False
-    xy, body_yaw, body_ex = register(
-        est.footprint,
-        env.footprints[w],
-        heights=est.footprint_heights if env.cfg.camera.register_heights else None,
-    )
-    pos = np.array([xy[0], xy[1], est.centre[2]])  # the body origin is the box's centre: half its height
-    env.loc_records[w].update(
-        loc_registered_xy=float(np.linalg.norm(xy - np.asarray(obj_pos)[:2])),
-        loc_registered_yaw=float(abs(wrap_angle(body_yaw - yaw))),
-    )
-    return pos, body_yaw, np.array([body_ex[0], body_ex[1], est.extents[2]]), True
