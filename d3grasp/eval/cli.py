@@ -26,7 +26,7 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 
 from d3grasp.cli.args import add_env_override_arg, add_trust_arg, parse_override, positive_int  # noqa: E402
 from d3grasp.envs.registry import DEFAULT_TASK  # noqa: E402
-from d3grasp.eval.evaluate import (  # noqa: E402
+from d3grasp.eval.specs import (  # noqa: E402
     BASELINE,
     GRASP_CHOICES,
     OBJECT_SETS,
@@ -114,7 +114,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     import torch
 
     from d3grasp.cli.args import resolve_torch_threads, run_command
-    from d3grasp.eval.evaluate import evaluate, write_outputs
+    from d3grasp.eval.evaluate import evaluate
+    from d3grasp.eval.report import write_outputs
     from d3grasp.eval.resume import BatchStore
 
     torch.set_num_threads(resolve_torch_threads(args.torch_threads))

@@ -12,8 +12,9 @@ stays inside [0, 1] and behaves at 0% and 100% where the normal approximation do
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from d3grasp.vocabulary import METRICS  # noqa: F401  (re-exported: eval's own name for them)
 
@@ -171,3 +172,28 @@ def grasp_type_markdown(runs: Mapping[str, Iterable[Mapping]], title: str = "") 
                 cells.append(Rate(sum(bool(e[m]) for e in mine), len(mine)).percent() + f" (n={len(mine)})")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def summary_rows(episodes: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (group, metric): successes, trials, rate and 95% Wilson interval (None if no trials).
+
+    The groups are the evaluation table's columns and Diverse (every rigid object, the comparison table's).
+    """
+    summary = aggregate(episodes)
+    rows = []
+    for col in GROUPS:
+        for m in METRICS:
+            rate = summary[col][m]
+            lo, hi = rate.interval
+            rows.append(
+                {
+                    "column": col,
+                    "metric": m,
+                    "successes": rate.successes,
+                    "trials": rate.trials,
+                    "rate": None if math.isnan(rate.value) else rate.value,
+                    "ci_low": None if math.isnan(lo) else lo,
+                    "ci_high": None if math.isnan(hi) else hi,
+                }
+            )
+    return rows

@@ -21,7 +21,8 @@ import trimesh
 from d3grasp.authoring.importer import import_meshes
 from d3grasp.console import quiet_warp
 from d3grasp.envs.grasp_file import read_grasp_file
-from d3grasp.eval.evaluate import EvalSettings, evaluate, summary_rows
+from d3grasp.eval.evaluate import EvalSettings, evaluate
+from d3grasp.eval.metrics import summary_rows
 from d3grasp.parallel import default_workers
 from d3grasp.planner.plan import PlannerConfig, evaluation_planner, plan_grasps
 

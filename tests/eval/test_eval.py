@@ -323,7 +323,8 @@ def test_parse_override() -> None:
 
 def test_results_json_is_strict_json_with_null_for_non_finite(tmp_path: Path) -> None:
     """A blown-up episode's max strain (NaN) is written as null: strict parsers read the file."""
-    from d3grasp.eval.evaluate import EvalResult, EvalSettings, write_outputs
+    from d3grasp.eval.evaluate import EvalResult, EvalSettings
+    from d3grasp.eval.report import write_outputs
 
     def episode(obj: str, strain: float, failure: str | None) -> dict[str, Any]:
         return {

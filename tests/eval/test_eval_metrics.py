@@ -137,7 +137,8 @@ def test_outcome_and_grasp_type_tables_count_by_hand() -> None:
 def test_the_ablation_table_tells_the_baselines_perceptions_apart() -> None:
     """Under the paper's protocol the ablation table holds the rule twice (camera and oracle): each
     column head names its perception."""
-    from d3grasp.eval.evaluate import RunSpec, _ablation_header
+    from d3grasp.eval.evaluate import RunSpec
+    from d3grasp.eval.report import _ablation_header
 
     rule = RunSpec("baseline", "D3Grasp-DexHand13-Mixed-v0", "baseline")
     assert _ablation_header(rule, "baseline/camera", {}) == "rule-based baseline, camera"
