@@ -765,8 +765,9 @@ torch.save({"actor": runner.alg.get_policy().state_dict(), "critic": runner.alg.
 """
 
 
-@pytest.mark.slow
 def test_torchrun_two_cpu_ranks_hold_identical_weights(tmp_path: Path) -> None:
+    """Two processes under torchrun on the stand-in environment (~20 s, most of it two interpreters
+    importing torch): the ranks' gradients pooled by their worlds, the weights identical after."""
     script = tmp_path / "ddp_train.py"
     script.write_text(_TORCHRUN_SCRIPT)
     cmd = [
