@@ -418,10 +418,10 @@ class GraspEnv:
         # gamma * V(s) to the last reward, a bootstrap past the outcome that had just been scored.
         extras: dict[str, Any] = {"time_outs": torch.zeros_like(done), "log": {}}
         # One mean over the worlds for all terms (a mean per term is a reduction launch each).
-        for name, mean in zip(rk.TERM_NAMES, self.t_reward_terms.mean(0).unbind(), strict=True):
+        for name, mean in zip(rk.TERM_NAMES, self.reward.terms.mean(0).unbind(), strict=True):
             extras["log"][f"Reward/{name}"] = mean
         if self.cfg.residual_penalty:
-            extras["log"]["Reward/residual"] = self.t_residual_term.mean()
+            extras["log"]["Reward/residual"] = self.reward.residual_term.mean()
         finished = torch.nonzero(done).flatten()
         if len(finished):
             episodes = terminations.episode_records(self, finished)

@@ -438,4 +438,4 @@ def test_contact_reward_counts_the_pads_touch_of_the_object_only():
         set_pads(env.sensors.pad_force_true, env.sensors.pad_contact_true, table + object_force)
         set_pads(env.sensors.pad_force_object, env.sensors.pad_contact_object, object_force)
         rewards.compute_rewards(env)
-        assert float(env.t_reward_terms[0, contact]) == pytest.approx(expected, rel=1e-5, abs=1e-6)
+        assert float(env.reward.terms[0, contact]) == pytest.approx(expected, rel=1e-5, abs=1e-6)

@@ -26,7 +26,7 @@ def _compare(env) -> None:
 
 def _compare_reward_inputs(env) -> None:
     want = rewards.reference_reward_inputs(env)
-    got = dict(env.t_rw)
+    got = dict(env.reward.step_inputs)
     got["obj_pos"], got["finite"] = env.scoring.step_inputs["obj_pos"], env.scoring.step_inputs["finite"]
     for name, value in want.items():
         torch.testing.assert_close(got[name].reshape(value.shape), value, rtol=1e-5, atol=1e-6, msg=name)

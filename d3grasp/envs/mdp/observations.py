@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
@@ -202,6 +203,25 @@ def reference_observations(env: GraspEnv) -> TensorDict:
     )
 
 
+# The observation inputs the environment writes each step (the rest are views of its buffers).
+_STEP_INPUTS = ("t", "action_hist", "palm_cmd", "rule_target", "residual")
+
+
+@dataclass
+class ObservationState:
+    """What the observation owns on the environment (``env.observation``): the kernel's parameters,
+    inputs and output groups (``policy``, ``privileged`` without the episode's draw), their torch views
+    (``out``), the torch views of the inputs written each step (``step_inputs``) and the launch."""
+
+    params: ok.ObservationParams
+    inputs: ok.ObservationInputs
+    policy: wp.array
+    privileged: wp.array
+    out: dict[str, torch.Tensor]
+    step_inputs: dict[str, torch.Tensor]
+    launch: Replayed
+
+
 def allocate(env: GraspEnv) -> None:
     """The observation kernel's parameters, inputs and outputs (sized by the terms above), and its
     launch captured as a graph. Needs the environment's state, sensors, scoring state and rule."""
@@ -225,7 +245,7 @@ def allocate(env: GraspEnv) -> None:
     def floats(*shape: int, dtype=float) -> wp.array:
         return wp.zeros(shape, dtype=dtype, device=dev)
 
-    env.obs_inputs = ok.ObservationInputs(
+    inputs = ok.ObservationInputs(
         t=wp.zeros(W, dtype=wp.int64, device=dev),
         pad_force=sensors.pad_force,
         pad_contact=sensors.pad_contact,
@@ -244,27 +264,31 @@ def allocate(env: GraspEnv) -> None:
         friction=wp.from_torch(env.object_friction),
         log_e=wp.from_torch(env.object_log_e),
     )
-    env.obs_params = prm
-    env.obs_policy = floats(W, sizes["policy"].shape[1])
-    env.obs_privileged = floats(W, sizes["privileged"].shape[1] - privileged_episode(env).shape[1])
-    env.t_obs = {"policy": wp_view(env.obs_policy), "privileged": wp_view(env.obs_privileged)}
-    inp = env.obs_inputs
-    env.t_obs_in = {
-        n: wp_view(getattr(inp, n)) for n in ("t", "action_hist", "palm_cmd", "rule_target", "residual")
-    }
-    env.obs_launch = Replayed(
-        lambda: ok.compute_observations(
-            env.obs_params, env.world_arrays, env.obs_inputs, env.obs_policy, env.obs_privileged
+    policy = floats(W, sizes["policy"].shape[1])
+    privileged = floats(W, sizes["privileged"].shape[1] - privileged_episode(env).shape[1])
+    env.observation = ObservationState(
+        params=prm,
+        inputs=inputs,
+        policy=policy,
+        privileged=privileged,
+        out={"policy": wp_view(policy), "privileged": wp_view(privileged)},
+        step_inputs={
+            n: wp_view(getattr(inputs, n))
+            for n in ("t", "action_hist", "palm_cmd", "rule_target", "residual")
+        },
+        launch=Replayed(
+            lambda: ok.compute_observations(prm, env.world_arrays, inputs, policy, privileged),
+            [ok],
+            dev,
+            env.cfg.sim.use_graph,
         ),
-        [ok],
-        dev,
-        env.cfg.sim.use_graph,
     )
 
 
 def compute_observations(env: GraspEnv) -> TensorDict:
     """Both groups (fresh tensors: a rollout keeps them while the next step runs)."""
-    i = env.t_obs_in
+    o = env.observation
+    i = o.step_inputs
     # The inputs the environment rebinds each step, copied into the kernel's buffers.
     i["t"].copy_(env.episode_length_buf)
     i["action_hist"].copy_(env.action_hist.reshape(env.num_envs, -1))
@@ -272,11 +296,11 @@ def compute_observations(env: GraspEnv) -> TensorDict:
     if env.residual_base is not None:
         i["rule_target"].copy_(env.residual_base.target)
         i["residual"].copy_(env.residual)
-    env.obs_launch()
+    o.launch()
     return TensorDict(
         {
-            "policy": env.t_obs["policy"].clone(),
-            "privileged": torch.cat([env.t_obs["privileged"], privileged_episode(env)], dim=-1),
+            "policy": o.out["policy"].clone(),
+            "privileged": torch.cat([o.out["privileged"], privileged_episode(env)], dim=-1),
         },
         batch_size=[env.num_envs],
         device=env.torch_device,

@@ -7,6 +7,7 @@ reward kernels; :func:`reference_reward_inputs` is that gather in torch, the ker
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
@@ -43,10 +44,26 @@ _STEP_INPUTS = (
 )
 
 
+@dataclass
+class RewardState:
+    """What the reward owns on the environment (``env.reward``): the gather's parameters, the reward
+    kernels' inputs and outputs, torch views of the terms (W, terms) and total (W,), of the inputs
+    written each step (``step_inputs``) and the residual penalty's term, and the replayed launch."""
+
+    gather_params: ws.RewardGatherParams
+    inputs: rk.RewardInputs
+    out: rk.RewardBuffers
+    terms: torch.Tensor
+    total: torch.Tensor
+    step_inputs: dict[str, torch.Tensor]
+    residual_term: torch.Tensor  # residual_penalty's, when on
+    launch: Replayed
+
+
 def allocate(env: GraspEnv) -> None:
     """The reward kernels' input and output buffers, and torch views of the inputs written per step."""
     W, dev, lay = env.num_envs, env.wp_device, env.layout
-    env.rw_in = rk.RewardInputs(
+    inputs = rk.RewardInputs(
         alive=wp.zeros(W, dtype=float, device=dev),
         joint_q=wp.zeros((W, NUM_FINGER_JOINTS), dtype=float, device=dev),
         joint_q_ref=wp.zeros((W, NUM_FINGER_JOINTS), dtype=float, device=dev),
@@ -67,46 +84,54 @@ def allocate(env: GraspEnv) -> None:
         is_deformable=wp.array((lay.object_kind == OBJECT_SOFT).astype("int32"), dtype=wp.int32, device=dev),
         object_rise=wp.zeros(W, dtype=float, device=dev),
     )
-    env.rw_out = rk.RewardBuffers.allocate(env.cfg.rewards, W, NUM_LINKS, NUM_PADS, device=dev)
-    env.t_reward_terms = wp_view(env.rw_out.terms)
-    env.t_reward_total = wp_view(env.rw_out.total)
-    env.t_rw = {name: wp_view(getattr(env.rw_in, name)) for name in _STEP_INPUTS}
-    env.t_residual_term = torch.zeros(W, device=env.torch_device)  # residual_penalty's, when on
+    out = rk.RewardBuffers.allocate(env.cfg.rewards, W, NUM_LINKS, NUM_PADS, device=dev)
     # The gather of the inputs above from the state (after the scoring's buffers: it reads the lift
     # starts and writes the scoring's object position and finiteness).
     prm = ws.RewardGatherParams()
     prm.table_height = env.cfg.sim.table_height
     prm.finger_half_thickness = FINGER_HALF_THICKNESS
     prm.grasp_phase, prm.lift_phase = PHASES.index("grasp"), PHASES.index("lift")
-    env.rw_gather_params = prm
     # The gather and the five reward launches replayed as one graph (the buffers above never move):
     # a launch from Python costs ~0.15 ms on the CPU, the kernels at a few worlds microseconds.
-    env.reward_launch = Replayed(lambda: _launches(env), [ws, rk], dev, env.cfg.sim.use_graph)
+    launch = Replayed(lambda: _launches(env, prm, inputs, out), [ws, rk], dev, env.cfg.sim.use_graph)
+    env.reward = RewardState(
+        gather_params=prm,
+        inputs=inputs,
+        out=out,
+        terms=wp_view(out.terms),
+        total=wp_view(out.total),
+        step_inputs={name: wp_view(getattr(inputs, name)) for name in _STEP_INPUTS},
+        residual_term=torch.zeros(W, device=env.torch_device),
+        launch=launch,
+    )
 
 
-def _launches(env: GraspEnv) -> None:
+def _launches(
+    env: GraspEnv, prm: ws.RewardGatherParams, inputs: rk.RewardInputs, out: rk.RewardBuffers
+) -> None:
     si = env.scoring.inputs
     ws.gather_reward_inputs(
-        env.rw_gather_params,
+        prm,
         env.world_arrays,
         si.t,  # the step count and the objects' start positions: the scoring's inputs, shared
         si.object_start,
-        env.rw_in,
+        inputs,
         si.obj_pos,
         si.finite,
     )
-    rk.compute_rewards(env.rw_in, env.rw_out)
+    rk.compute_rewards(inputs, out)
 
 
 def compute_rewards(env: GraspEnv) -> torch.Tensor:
     """The step's reward of every world (W,), non-finite values zeroed and clipped at ``reward_clip``;
     writes the scoring's inputs on the way: the step count, the object's position and finiteness."""
     env.scoring.step_inputs["t"].copy_(env.episode_length_buf)
-    env.reward_launch()
-    total = torch.nan_to_num(env.t_reward_total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
+    r = env.reward
+    r.launch()
+    total = torch.nan_to_num(r.total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
     if env.cfg.residual_penalty:
-        env.t_residual_term[:] = residual_penalty(env)  # kept for the step's log (Reward/residual)
-        total += env.t_residual_term
+        r.residual_term[:] = residual_penalty(env)  # kept for the step's log (Reward/residual)
+        total += r.residual_term
     clip = env.cfg.reward_clip
     return total.clamp(-clip, clip) if clip > 0 else total
 
