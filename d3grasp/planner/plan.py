@@ -42,8 +42,6 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from d3grasp.envs.grasp_file import (
     GRASP_FILE_FORMAT,
     GRASP_FILE_VERSION,
@@ -53,13 +51,9 @@ from d3grasp.envs.grasp_file import (
     read_grasp_file,
 )
 from d3grasp.parallel import run_units
-from d3grasp.planner.candidates import CandidateConfig, candidates, collision_pieces, convex_hull, perturbed
-from d3grasp.planner.score import ScoringConfig, Trial, run_trials, trial_environment, trial_score
-
-# Object displaced by (dx, dy) m and turned by dyaw rad from where the planner thinks it is: the
-# camera's localisation error class (5.6 mm mean, 11 mm p95 with noise; docs/evaluation.md, Perception).
-PERTURBATIONS: tuple[tuple[float, float, float], ...] = ((0.004, -0.003, 0.08), (-0.004, 0.003, -0.08))
-
+from d3grasp.planner.candidates import CandidateConfig, collision_pieces, convex_hull
+from d3grasp.planner.rounds import PERTURBATIONS, candidates_of, plan_unit
+from d3grasp.planner.score import ScoringConfig, trial_environment
 
 SCHEDULES: tuple[str, ...] = ("legacy", "evaluation")
 """How candidates are tried and kept (module docstring)."""
@@ -144,21 +138,13 @@ def config_of_record(record: dict[str, Any]) -> PlannerConfig | None:
         return None
 
 
-def _candidates_of(row: dict[str, Any], cfg: PlannerConfig) -> list[Any]:
-    """The candidates of a unit's object row (id, kind, extents, pieces) under ``cfg``."""
-    pieces = [(np.asarray(c), np.asarray(x)) for c, x in row.get("pieces", ())]
-    soft = row["kind"] == "deformable"
-    hull = (np.asarray(row["hull"][0]), np.asarray(row["hull"][1])) if row.get("hull") else None
-    return candidates(row["id"], np.asarray(row["extents"]), cfg.seed, cfg.candidates, soft, pieces, hull)
-
-
 def same_trials(old: PlannerConfig, new: PlannerConfig, rows: Sequence[dict[str, Any]]) -> bool:
     """Whether planning the group ``rows`` under ``old`` and ``new`` runs the same trials (then it
     gives the same plan: a group's trials depend on nothing else)."""
     if replace(old, candidates=new.candidates, objects_per_unit=new.objects_per_unit) != new:
         return False  # any setting but the candidates' changes the trials
     for row in rows:
-        a, b = _candidates_of(row, old), _candidates_of(row, new)
+        a, b = candidates_of(row, old), candidates_of(row, new)
         if [g.to_json() for g in a] != [g.to_json() for g in b]:
             return False
     return True
@@ -172,151 +158,46 @@ def _differing(old: Any, new: Any, prefix: str = "") -> list[str]:
     return [d for k in keys for d in _differing(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else k)]
 
 
-ByType = dict[tuple[str, str], list[tuple[float, Trial, dict[str, Any]]]]
-"""Round 1's trials by (object, grasp type), in candidate order: (score, trial, record)."""
+def _units(manifest: Path, entries: Sequence[Any], cfg: PlannerConfig) -> list[list[dict[str, Any]]]:
+    """The selection's objects in fixed groups of ``cfg.objects_per_unit``, each object a row of what
+    its trials need (id, kind, extents, collision pieces, hull)."""
+    from d3grasp.authoring.manifest import read_manifest, resolve_asset_path
+    from d3grasp.authoring.precision import stable_json
 
-
-def _finalists(entries: Sequence[dict[str, Any]], cfg: PlannerConfig, by_type: ByType) -> list[Any]:
-    """The best ``cfg.finalists`` of each object and type by round 1's score, those that lifted."""
-    finalists: list[tuple[float, Trial, dict[str, Any]]] = []
-    for e in entries:
-        for grasp_type in cfg.candidates.types:
-            mine = sorted(by_type.get((e["id"], grasp_type), []), key=lambda x: -x[0])
-            finalists += [x for x in mine[: cfg.finalists] if x[2]["s_lift"]]
-    return finalists
-
-
-def plan_unit(
-    manifest: str, entries: Sequence[dict[str, Any]], cfg: PlannerConfig
-) -> dict[str, dict[str, Any]]:
-    """Plan a group of objects (``entries``: id, kind, extents); the grasp file records by id."""
-    trials: list[Trial] = []
-    for e in entries:
-        trials += [Trial(e["id"], g) for g in _candidates_of(e, cfg)]
-    records = run_trials(trials, manifest, cfg.scoring)
-    by_type: ByType = {}
-    for t, r in zip(trials, records, strict=True):
-        by_type.setdefault((t.object_id, t.grasp.grasp), []).append((trial_score(r), t, r))
-    if cfg.schedule == "evaluation":
-        out = _halving_rounds(manifest, entries, cfg, by_type)
-    else:
-        out = _legacy_rounds(manifest, entries, cfg, by_type)
-    _describe_unit(out, entries, cfg, by_type)
-    return out
-
-
-def _halving_rounds(
-    manifest: str, entries: Sequence[dict[str, Any]], cfg: PlannerConfig, by_type: ByType
-) -> dict[str, dict[str, Any]]:
-    """Rounds 2 and 3 of the evaluation schedule (module docstring): the kept grasp of each type."""
-    from d3grasp.eval.metrics import wilson_interval
-
-    views = cfg.perceptions
-    finalists = _finalists(entries, cfg, by_type)
-    screen = [
-        Trial(t.object_id, t.grasp, views[k % len(views)])
-        for _, t, _ in finalists
-        for k in range(cfg.screen_trials)
-    ]
-    screened = run_trials(screen, manifest, cfg.scoring, stream=1) if screen else []
-    # Each finalist's trials so far; the best of each object and type by its mean trial score.
-    best: dict[tuple[str, str], tuple[float, Trial, list[dict[str, Any]]]] = {}
-    n = cfg.screen_trials
-    for k, (_, t, r0) in enumerate(finalists):
-        rs = [r0, *screened[k * n : (k + 1) * n]]
-        mean = float(np.mean([trial_score(r) for r in rs]))
-        key = (t.object_id, t.grasp.grasp)
-        if key not in best or mean > best[key][0]:
-            best[key] = (mean, t, rs)
-    kept = list(best.values())
-    final = [
-        Trial(t.object_id, t.grasp, views[k % len(views)])
-        for _, t, _ in kept
-        for k in range(cfg.final_trials)
-    ]
-    full = replace(cfg.scoring, push_seconds=cfg.final_push_seconds)
-    finals = run_trials(final, manifest, full, stream=2) if final else []
-    out: dict[str, dict[str, Any]] = {e["id"]: {"grasps": {}} for e in entries}
-    m = cfg.final_trials
-    for k, (_, t, rs) in enumerate(kept):
-        mine = finals[k * m : (k + 1) * m]
-        mine_views = final[k * m : (k + 1) * m]
-        held = sum(int(r["s_disturb"]) for r in mine)
-        lo, hi = wilson_interval(held, m)
-        firmness = float(np.mean([trial_score(r) for r in mine]))
-        by_view = {
-            view: _counts([r for r, f in zip(mine, mine_views, strict=True) if f.perception == view])
-            for view in views
-        }
-        out[t.object_id]["grasps"][t.grasp.grasp] = {
-            **t.grasp.to_json(),
-            "score": round(lo + 0.01 * firmness, 4),
-            "rate": round(held / m, 4),
-            "rate_interval": [round(lo, 4), round(hi, 4)],
-            "trials": {**_counts([*rs, *mine]), "final": {"push_seconds": cfg.final_push_seconds, **by_view}},
-        }
-    return out
-
-
-def _counts(records: Sequence[dict[str, Any]]) -> dict[str, int]:
-    """Lifts and holds of some trials' records, and how many there were."""
-    return {
-        "lift": sum(int(r["s_lift"]) for r in records),
-        "disturb": sum(int(r["s_disturb"]) for r in records),
-        "of": len(records),
-    }
-
-
-def _legacy_rounds(
-    manifest: str, entries: Sequence[dict[str, Any]], cfg: PlannerConfig, by_type: ByType
-) -> dict[str, dict[str, Any]]:
-    """Round 2 of the legacy schedule: each finalist at the two ``PERTURBATIONS``, ranked by the mean."""
-    finalists = _finalists(entries, cfg, by_type)
-    retries = [
-        Trial(t.object_id, perturbed(t.grasp, (dx, dy), dyaw))
-        for _, t, _ in finalists
-        for dx, dy, dyaw in PERTURBATIONS
-    ]
-    retry_records = run_trials(retries, manifest, cfg.scoring) if retries else []
-    out: dict[str, dict[str, Any]] = {e["id"]: {"grasps": {}} for e in entries}
-    n = len(PERTURBATIONS)
-    for k, (_, t, r0) in enumerate(finalists):
-        rs = [r0, *retry_records[k * n : (k + 1) * n]]
-        score = float(np.mean([trial_score(r) for r in rs]))
-        best = out[t.object_id]["grasps"].get(t.grasp.grasp)
-        if best is None or score > best["score"]:
-            out[t.object_id]["grasps"][t.grasp.grasp] = {
-                **t.grasp.to_json(),
-                "score": round(score, 4),
-                "trials": _counts(rs),
+    # Fixed groups of the whole selection in library order (rigid objects first: a FEM step costs
+    # ~20x a rigid one, d3grasp.eval.evaluate.SOFT_COST, and the two kinds never share a group, so a
+    # group of rigid objects runs at 5 solver iterations), whatever is planned already and
+    # however many workers run them: a group's objects share their batches, so the same groups give
+    # the same plan for a seed on any number of cores and after any interruption. A group with an
+    # object left to plan runs whole.
+    order = {e.id: k for k, e in enumerate(read_manifest(manifest))}
+    units = []
+    for kind in ("rigid", "deformable"):
+        mine = sorted((e for e in entries if e.kind == kind), key=lambda e: order[e.id])
+        rows = [
+            {
+                "id": e.id,
+                "kind": e.kind,
+                "extents": list(e.extents),
+                # The collision pieces of a rigid object (composites get candidates on them), at the
+                # authoring precision: the same candidates whichever process reads the file.
+                "pieces": [
+                    (stable_json(c.tolist()), stable_json(x.tolist()))
+                    for c, x in collision_pieces(resolve_asset_path(manifest, e))
+                ]
+                if e.kind == "rigid"
+                else [],
+                # The convex hull the synthesised candidates are descended on (only when asked for).
+                "hull": (
+                    tuple(a.tolist() for a in convex_hull(resolve_asset_path(manifest, e)))
+                    if e.kind == "rigid" and cfg.candidates.synthesised
+                    else None
+                ),
             }
-    return out
-
-
-def _describe_unit(
-    out: dict[str, dict[str, Any]], entries: Sequence[dict[str, Any]], cfg: PlannerConfig, by_type: ByType
-) -> None:
-    """Round 1's counts, the fallback of an object none of whose candidates lifted, and the settings
-    its trials ran under, into each object's record."""
-    environment = trial_environment(cfg.scoring)  # the same for every object of the unit
-    for e in entries:
-        oid = e["id"]
-        mine_all = [x for g in cfg.candidates.types for x in by_type.get((oid, g), [])]
-        out[oid]["candidates"] = len(mine_all)
-        out[oid]["lifted_nominal"] = sum(1 for _, _, r in mine_all if r["s_lift"])
-        if not out[oid]["grasps"]:
-            # Nothing lifted: keep each type's best nominal candidate (by score, then by how far the
-            # object rose), so the object still gets the most promising grasp, marked with score 0.
-            for grasp_type in cfg.candidates.types:
-                mine = by_type.get((oid, grasp_type), [])
-                if mine:
-                    s, t, r = max(mine, key=lambda x: (x[0], x[2]["max_rise"]))
-                    out[oid]["grasps"][grasp_type] = {
-                        **t.grasp.to_json(),
-                        "score": round(s, 4),
-                        "trials": {"lift": 0, "disturb": 0, "of": 1},
-                    }
-        out[oid]["environment"] = environment
+            for e in mine
+        ]
+        units += [rows[k : k + cfg.objects_per_unit] for k in range(0, len(rows), cfg.objects_per_unit)]
+    return units
 
 
 def plan_grasps(
@@ -381,39 +262,8 @@ def plan_grasps(
             and rec.get("planner", settings) == settings
         )
 
-    # Fixed groups of the whole selection in library order (rigid objects first: a FEM step costs
-    # ~20x a rigid one, d3grasp.eval.evaluate.SOFT_COST, and the two kinds never share a group, so a
-    # group of rigid objects runs at 5 solver iterations), whatever is planned already and
-    # however many workers run them: a group's objects share their batches, so the same groups give
-    # the same plan for a seed on any number of cores and after any interruption. A group with an
-    # object left to plan runs whole.
+    units = _units(manifest, entries, cfg)
     order = {e.id: k for k, e in enumerate(read_manifest(manifest))}
-    units = []
-    for kind in ("rigid", "deformable"):
-        mine = sorted((e for e in entries if e.kind == kind), key=lambda e: order[e.id])
-        rows = [
-            {
-                "id": e.id,
-                "kind": e.kind,
-                "extents": list(e.extents),
-                # The collision pieces of a rigid object (composites get candidates on them), at the
-                # authoring precision: the same candidates whichever process reads the file.
-                "pieces": [
-                    (stable_json(c.tolist()), stable_json(x.tolist()))
-                    for c, x in collision_pieces(resolve_asset_path(manifest, e))
-                ]
-                if e.kind == "rigid"
-                else [],
-                # The convex hull the synthesised candidates are descended on (only when asked for).
-                "hull": (
-                    tuple(a.tolist() for a in convex_hull(resolve_asset_path(manifest, e)))
-                    if e.kind == "rigid" and cfg.candidates.synthesised
-                    else None
-                ),
-            }
-            for e in mine
-        ]
-        units += [rows[k : k + cfg.objects_per_unit] for k in range(0, len(rows), cfg.objects_per_unit)]
     if earlier is not None:
         # A plan of other settings: a group whose trials those settings ran as these would (e.g. no
         # composite among its objects when the settings differ by the pieces' candidates) is kept.

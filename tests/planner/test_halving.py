@@ -11,16 +11,10 @@ from typing import Any
 
 import pytest
 
-from d3grasp.planner import plan as plan_mod
+from d3grasp.planner import rounds as rounds_mod
 from d3grasp.planner.candidates import perturbed
-from d3grasp.planner.plan import (
-    PERTURBATIONS,
-    PlannerConfig,
-    _candidates_of,
-    config_of_record,
-    evaluation_planner,
-    plan_unit,
-)
+from d3grasp.planner.plan import PlannerConfig, config_of_record, evaluation_planner
+from d3grasp.planner.rounds import PERTURBATIONS, candidates_of, plan_unit
 from d3grasp.planner.score import Trial
 
 ENTRY = {"id": "cube", "kind": "rigid", "extents": [0.06, 0.06, 0.06], "pieces": []}
@@ -39,7 +33,7 @@ def _record(lift: bool, hold: bool, motion: float | None = None) -> dict[str, An
 def _scripted(cfg: PlannerConfig, outcome: Any, calls: list[tuple[int, float, list[Trial]]]) -> Any:
     """A ``run_trials`` whose record of a trial is ``outcome(candidate index, trial, stream, n)``,
     ``n`` counting that candidate's trials in the stream; ``calls`` logs (stream, push, trials)."""
-    cands = _candidates_of(ENTRY, cfg)
+    cands = candidates_of(ENTRY, cfg)
     index = {json.dumps(g.to_json(), sort_keys=True): k for k, g in enumerate(cands)}
     for k, g in enumerate(cands):  # the legacy schedule's displaced retries of each candidate
         for dx, dy, dyaw in PERTURBATIONS:
@@ -60,7 +54,7 @@ def _scripted(cfg: PlannerConfig, outcome: Any, calls: list[tuple[int, float, li
 
 def test_evaluation_schedule_keeps_the_grasp_that_holds_most(monkeypatch: pytest.MonkeyPatch) -> None:
     cfg = evaluation_planner(candidates=replace(PlannerConfig().candidates, per_type=3, types=("top",)))
-    assert [c.grasp for c in _candidates_of(ENTRY, cfg)] == ["top"] * 3
+    assert [c.grasp for c in candidates_of(ENTRY, cfg)] == ["top"] * 3
 
     # Candidate 0 lifts in round 1 but never holds afterwards; 1 does not lift in round 1 (out);
     # 2 lifts and holds round 1 and 2 of its 3 screening trials, then 9 of its 12 final ones, the
@@ -75,7 +69,7 @@ def test_evaluation_schedule_keeps_the_grasp_that_holds_most(monkeypatch: pytest
         return _record(lift=True, hold=n < 9, motion=0.004 if n < 9 else 0.03)  # lost: moved > 2 cm
 
     calls: list[tuple[int, float, list[Trial]]] = []
-    monkeypatch.setattr(plan_mod, "run_trials", _scripted(cfg, outcome, calls))
+    monkeypatch.setattr(rounds_mod, "run_trials", _scripted(cfg, outcome, calls))
     out = plan_unit("unused.json", [ENTRY], cfg)["cube"]
 
     streams = [(s, push, len(ts)) for s, push, ts in calls]
@@ -89,7 +83,7 @@ def test_evaluation_schedule_keeps_the_grasp_that_holds_most(monkeypatch: pytest
         and sum(t.perception == "oracle" for t in final) == 6
     )
     kept = out["grasps"]["top"]
-    candidates = _candidates_of(ENTRY, cfg)
+    candidates = candidates_of(ENTRY, cfg)
     assert {k: v for k, v in kept.items() if k in candidates[2].to_json()} == candidates[2].to_json()
     # Its trials: 1 + 3 + 12 = 16; held: 1 (round 1) + 2 (round 2) + 9 (round 3) = 12.
     assert kept["trials"]["of"] == 16 and kept["trials"]["lift"] == 16 and kept["trials"]["disturb"] == 12
@@ -117,7 +111,7 @@ def test_a_type_whose_candidates_never_lift_keeps_its_best_attempt_at_score_zero
     cfg = evaluation_planner(candidates=replace(PlannerConfig().candidates, per_type=2, types=("pinch",)))
     calls: list[tuple[int, float, list[Trial]]] = []
     monkeypatch.setattr(
-        plan_mod, "run_trials", _scripted(cfg, lambda k, t, s, n: _record(False, False), calls)
+        rounds_mod, "run_trials", _scripted(cfg, lambda k, t, s, n: _record(False, False), calls)
     )
     out = plan_unit("unused.json", [ENTRY], cfg)["cube"]
     assert [s for s, _, _ in calls] == [0]  # nothing lifted: no further round
@@ -139,7 +133,7 @@ def test_legacy_schedule_ranks_finalists_by_the_mean_of_three(monkeypatch: pytes
         return _record(k == 2, k == 2)
 
     calls: list[tuple[int, float, list[Trial]]] = []
-    monkeypatch.setattr(plan_mod, "run_trials", _scripted(cfg, outcome, calls))
+    monkeypatch.setattr(rounds_mod, "run_trials", _scripted(cfg, outcome, calls))
     kept = plan_unit("unused.json", [ENTRY], cfg)["cube"]["grasps"]["side"]
     assert [len(ts) for _, _, ts in calls] == [3, 4]  # the two finalists x the two displacements
     assert kept["trials"] == {"lift": 3, "disturb": 2, "of": 3}
