@@ -65,9 +65,9 @@ def instrumented_env(*args: Any, **kwargs: Any) -> Any:
 
     def snapshot(worlds: np.ndarray) -> None:
         forces = env.sensors.pad_force_object.numpy()  # (W, 11, 3), pad frames, true
-        q = env.t_joint_q.detach().cpu().numpy()
-        qd = env.t_joint_qd.detach().cpu().numpy()
-        target = env.t_target.detach().cpu().numpy()
+        q = env.view.joint_q.detach().cpu().numpy()
+        qd = env.view.joint_qd.detach().cpu().numpy()
+        target = env.view.target.detach().cpu().numpy()
         # Mass and friction are written at reset; read them once per snapshot (the model's arrays).
         for w in worlds:
             qi, di = lay.finger_q[w], lay.finger_dof[w]

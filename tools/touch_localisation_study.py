@@ -62,23 +62,23 @@ def collect(
         for r in range(rounds):
             if r:
                 env.reset_worlds(torch.arange(W))
-            error = env.centre_correction.double().numpy().copy()
-            rot = np.stack([quat_xyzw_to_matrix(q) for q in env.grasp_palm_quat.double().numpy()])
+            error = env.grasp.centre_correction.double().numpy().copy()
+            rot = np.stack([quat_xyzw_to_matrix(q) for q in env.grasp.palm_quat.double().numpy()])
             error_palm = np.einsum("wji,wj->wi", rot, error)  # R^T e: the error in the palm's frame
-            first = np.full((W, env.t_pad_force_object.shape[1]), -1.0)
+            first = np.full((W, env.view.pad_force_object.shape[1]), -1.0)
             done = np.zeros(W, dtype=bool)
             rec = {k: np.zeros((W,) + s) for k, s in (("q", (16,)), ("force", (11, 3)))}
-            grasp = env.grasp_id.numpy().copy()
+            grasp = env.grasp.type_id.numpy().copy()
             for _ in range(env.phase_start["lift"] + 2):
                 env.step(zero)
                 t = env.episode_length_buf.numpy()
-                force = env.t_pad_force_object.double().numpy()
+                force = env.view.pad_force_object.double().numpy()
                 touching = np.linalg.norm(force, axis=-1) > touch_force
                 newly = touching & (first < 0) & (t[:, None] > g0)
                 first[newly] = np.broadcast_to(((t - g0) / 60.0)[:, None], first.shape)[newly]
                 now = ~done & (t >= env.scoring.now.lift_start.numpy())
                 if now.any():
-                    q = env.t_joint_q[env.i_finger_q].view(W, -1).double().numpy()
+                    q = env.view.joint_q[env.index.finger_q].view(W, -1).double().numpy()
                     rec["q"][now], rec["force"][now] = q[now], force[now]
                     done |= now
                 if done.all():

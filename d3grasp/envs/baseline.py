@@ -173,8 +173,8 @@ def rule_step(
 class RuleBasedController:
     """The rule on an environment's readings; ``act(obs)`` returns actions like a policy.
 
-    ``env`` is any object with the environment's readings (``t_pad_force_object``, ``t_joint_q`` with
-    ``i_finger_q``, ``episode_length_buf``, ``phase_of``, ``grasp_id``, ``dt``, joint limits
+    ``env`` is any object with the environment's readings (``view.pad_force_object``, ``view.joint_q``
+    with ``index.finger_q``, ``episode_length_buf``, ``phase_of``, ``grasp.type_id``, ``dt``, joint limits
     ``lower`` / ``upper``, ``normalize_joints``; ``object_soft`` if it has soft objects); in the
     residual action modes the environment runs the rule itself (``env.residual_base``) and this
     controller's actions are the zero residual.
@@ -199,7 +199,7 @@ class RuleBasedController:
 
     def settled(self) -> torch.Tensor:
         """(W,) bool: every joint the grasp type closes has stopped (:func:`rule_settled`)."""
-        return rule_settled(self.state, self.tables, self.env.grasp_id)
+        return rule_settled(self.state, self.tables, self.env.grasp.type_id)
 
     def act(self, obs: object = None) -> torch.Tensor:
         env = self.env
@@ -215,10 +215,10 @@ class RuleBasedController:
             self.state,
             self.tables,
             self.cfg,
-            env.t_pad_force_object,
-            env.t_joint_q[env.i_finger_q],
+            env.view.pad_force_object,
+            env.view.joint_q[env.index.finger_q],
             closing,
-            env.grasp_id,
+            env.grasp.type_id,
             env.dt,
             getattr(env, "object_soft", None),
         )

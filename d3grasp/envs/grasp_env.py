@@ -19,7 +19,6 @@ commands the palm, fills the kernels' inputs and resets finished worlds.
 from __future__ import annotations
 
 import gc
-import math
 import os
 import warnings
 from collections.abc import Callable
@@ -32,12 +31,13 @@ import warp as wp
 from tensordict import TensorDict
 
 from d3grasp.authoring.manifest import resolve_asset_path
-from d3grasp.dexhand13 import ABDUCTION_JOINTS, NUM_FINGER_JOINTS, NUM_FINGERS
+from d3grasp.dexhand13 import ABDUCTION_JOINTS
 from d3grasp.envs.baseline import RuleBasedController, rest_targets
 from d3grasp.envs.config import ACTION_MODES, CLOSING_PRIORS, GRASP_SOURCES, PERCEPTION_MODES, GraspEnvConfig
 from d3grasp.envs.grasp_file import changed_settings, environment_record, load_grasp_plan, without_prior
 from d3grasp.envs.mdp import actions as mdp_actions
 from d3grasp.envs.mdp import events, observations, rewards, terminations
+from d3grasp.envs.parts import Actions, Draw, Grasp, Indices, Nominal, PalmPath, Views
 from d3grasp.envs.physics import Physics
 from d3grasp.envs.scene import (
     HAND_ANCHOR_QUAT,
@@ -46,7 +46,7 @@ from d3grasp.envs.scene import (
     select_world_objects,
 )
 from d3grasp.envs.script import EpisodeScript
-from d3grasp.envs.sensors import Sensors, wp_view
+from d3grasp.envs.sensors import Sensors
 from d3grasp.geometry import quat_xyzw_to_matrix
 from d3grasp.kernels import rewards as rk
 from d3grasp.kernels import world_state as ws
@@ -125,48 +125,20 @@ class GraspEnv:
         model.soft_contact_mu = sim.soft_contact_mu
         apply_soft_damping(model, self.layout, sim.soft_damping)
         # What the per-episode randomisation scales (events.py).
-        self.nominal_tet_materials = model.tet_materials.numpy().copy() if model.tet_count else None
-        self.nominal_body_mass = model.body_mass.numpy().copy()
-        self.nominal_body_inv_mass = model.body_inv_mass.numpy().copy()
-        self.nominal_shape_mu = model.shape_material_mu.numpy().copy()
-        self.nominal_ke = model.joint_target_ke.numpy().copy()
-        self.nominal_kd = model.joint_target_kd.numpy().copy()
+        self.nominal = Nominal.of(model)
         self.physics = Physics(model, self.layout, sim, self.wp_device)
         self.sensors = Sensors(model, self.layout, self.cfg, self.wp_device)
 
     def _allocate_buffers(self) -> None:
         tdev, lay, f32 = self.torch_device, self.layout, torch.float32
         ph, se = self.physics, self.sensors
-        # Torch views of device arrays (zero-copy).
-        # state_0 is the same object after every control step (an even number of substeps swap it).
-        self.t_joint_q = wp_view(ph.state_0.joint_q)
-        self.t_joint_qd = wp_view(ph.state_0.joint_qd)
-        self.t_body_q = wp_view(ph.state_0.body_q)
-        self.t_body_qd = wp_view(ph.state_0.body_qd)
-        self.t_target = wp_view(ph.control.joint_target_q)
-        self.t_object_force = wp_view(ph.object_force)
-        self.t_palm_pos_start = wp_view(ph.palm_pos_start)
-        self.t_palm_pos_end = wp_view(ph.palm_pos_end)
-        self.t_palm_quat = wp_view(ph.palm_quat)
-        self.t_palm_yaw_start = wp_view(ph.palm_yaw_start)
-        self.t_palm_yaw_end = wp_view(ph.palm_yaw_end)
-        self.t_pad_force = wp_view(se.pad_force)
-        self.t_pad_contact = wp_view(se.pad_contact)
-        self.t_pad_force_true = wp_view(se.pad_force_true)
-        self.t_pad_force_object = wp_view(se.pad_force_object)
-
-        def index(a: np.ndarray) -> torch.Tensor:
-            return torch.as_tensor(a, dtype=torch.long, device=tdev)
-
-        self.i_finger_q, self.i_finger_dof = index(lay.finger_q), index(lay.finger_dof)
-        self.i_root_q, self.i_link_bodies = index(lay.root_q), index(lay.link_bodies)
-        self.i_palm, self.i_obj_body = index(lay.palm_body), index(np.maximum(lay.object_body, 0))
+        self.view = Views.of(ph, se)  # torch views of device arrays (zero-copy)
+        self.index = Indices.of(lay, tdev)
         self.lower = torch.as_tensor(lay.finger_lower, dtype=f32, device=tdev)
         self.upper = torch.as_tensor(lay.finger_upper, dtype=f32, device=tdev)
         # The open hand: flexion at its lower limit, abduction centred (all zeros on DexHand13), the
         # pose the rule-based closing starts from.
         self.open_pose = rest_targets(self.lower, self.upper)
-        self.open_action = self.normalize_joints(self.open_pose)
         self._allocate_episode_buffers()  # the scoring's state among them
         self._allocate_kernel_tables()
         rewards.allocate(self)
@@ -213,49 +185,21 @@ class GraspEnv:
             return torch.zeros(*shape, dtype=dtype, device=tdev)
 
         self.episode_length_buf = zeros(W, dtype=torch.long)
-        self.actions = zeros(W, A)
-        self.action_hist = zeros(W, self.cfg.obs.action_history, A)
-        # Steps since the actions started to act this episode (decision_steps: a decision every k-th).
-        self.decision_age = zeros(W, dtype=torch.long)
-        self.synergy = mdp_actions.synergy_matrix(tdev)
-        # What an action history starts from: the open hand (absolute) or the zero residual (the rule).
-        self.reset_action = self.open_action if self.cfg.action_mode == "absolute" else zeros(A)
-        self.finger_target = zeros(W, NUM_FINGER_JOINTS)
-        self.residual = zeros(W, NUM_FINGER_JOINTS)  # per joint, in [-1, 1]
-        self.latency = zeros(W, dtype=torch.long)
-        # The episode's draw of the domain randomisation: mass (rigid) or Young's modulus (soft) scale,
-        # friction scale, drive gain scale, action latency (steps); all 1 / 0 without randomisation.
-        self.episode_dynamics = torch.tensor([[1.0, 1.0, 1.0, 0.0]], device=tdev).repeat(W, 1)
-        self.grasp_id = zeros(W, dtype=torch.long)
-        self.preshape = zeros(W, NUM_FINGERS)  # abduction of each finger's first joint (rad)
-        self.grasp_palm_pos, self.grasp_palm_quat, self.approach_dir = zeros(W, 3), zeros(W, 4), zeros(W, 3)
-        self.root_cmd_pos = zeros(W, 3)
-        # The wrist's offset of the scripted palm path (GraspEnvConfig.palm_*; zero without a wrist).
-        self.palm_offset, self.palm_yaw = zeros(W, 3), zeros(W)
-        # What moves the grasp planned at the camera's estimate onto the grasp at the true pose: palm
-        # offset (m) and turn (rad) on the wrist's axes; zero with the oracle pose (mdp.events).
-        self.pose_correction = zeros(W, 4)
-        # The same grasp moved by the camera's centre error only, its yaw kept (m, world): what an
-        # object that looks the same turned needs (a cylinder's yaw error moves the grasp by cm).
-        self.centre_correction = zeros(W, 3)
-        self.root_q_cmd = zeros(W, self.layout.root_q.shape[1])
-        # p_anchor = R_a^T p  <=>  row vector p @ R_a
-        self.anchor_rot = torch.as_tensor(quat_xyzw_to_matrix(HAND_ANCHOR_QUAT), dtype=f32, device=tdev)
-        self.object_start = zeros(W, 3)
-        self.disturb_order = zeros(W, 6, dtype=torch.long)
+        self.act = Actions.zeros(
+            W,
+            A,
+            self.cfg.obs.action_history,
+            mdp_actions.synergy_matrix(tdev),
+            self.normalize_joints(self.open_pose),
+            absolute=self.cfg.action_mode == "absolute",
+        )
+        self.draw = Draw.zeros(self.world_entries, tdev)
+        self.grasp = Grasp.zeros(W, tdev)
+        anchor = torch.as_tensor(quat_xyzw_to_matrix(HAND_ANCHOR_QUAT), dtype=f32, device=tdev)
+        self.palm = PalmPath.of(self.physics, W, self.layout.root_q.shape[1], anchor)
         self.max_strain = zeros(W)
         self.episode_return = zeros(W)
-        es = self.world_entries
-        self.object_soft = torch.as_tensor([e.kind == "deformable" for e in es], device=tdev)
-        self.object_mass = torch.as_tensor([e.mass for e in es], dtype=f32, device=tdev)
-        self.object_friction = torch.as_tensor(
-            [float(e.material.get("friction", 1.0)) for e in es], dtype=f32, device=tdev
-        )
-        self.object_log_e = torch.as_tensor(
-            [math.log10(float(e.material["youngs_modulus"])) if e.kind == "deformable" else 0.0 for e in es],
-            dtype=f32,
-            device=tdev,
-        )
+        self.object_soft = torch.as_tensor([e.kind == "deformable" for e in self.world_entries], device=tdev)
         self._obs: TensorDict | None = None
         # The scoring's state (lift start, s_grasp, s_lift, s_disturb, failure causes, ...) as torch
         # views of the scoring kernel's buffers: written in place only.
@@ -309,14 +253,14 @@ class GraspEnv:
         the other steps out of its policy loss (d3grasp.train.ppo)."""
         if self.residual_base is None:  # absolute mode: every action acts (mdp.actions.hold_decisions)
             return torch.ones(self.num_envs, dtype=torch.bool, device=self.torch_device)
-        return mdp_actions.acting(self) & (self.decision_age % self.cfg.decision_steps == 0)
+        return mdp_actions.acting(self) & (self.act.decision_age % self.cfg.decision_steps == 0)
 
     def open_pose_of(self, worlds: torch.Tensor) -> torch.Tensor:
         """(len(worlds), 16) the open hand of each world: the rule's rest pose with the abduction
         joints at the world's grasp pre-shape."""
         pose = self.open_pose.expand(len(worlds), -1).clone()
         pose[:, list(ABDUCTION_JOINTS)] = torch.minimum(
-            torch.maximum(self.preshape[worlds], self.lower[list(ABDUCTION_JOINTS)]),
+            torch.maximum(self.grasp.preshape[worlds], self.lower[list(ABDUCTION_JOINTS)]),
             self.upper[list(ABDUCTION_JOINTS)],
         )
         return pose
@@ -327,7 +271,7 @@ class GraspEnv:
 
     def object_state(self) -> tuple[torch.Tensor, ...]:
         """Every world's object position, orientation (xyzw), linear and angular velocity."""
-        return self.sensors.object_state(self.t_body_q, self.t_body_qd, self.i_obj_body)
+        return self.sensors.object_state(self.view.body_q, self.view.body_qd, self.index.obj_body)
 
     # ------------------------------------------------------------------------------------------
     # The control step
@@ -357,16 +301,16 @@ class GraspEnv:
     def _command_palm(self, pos: torch.Tensor) -> None:
         if self.layout.kinematic_palm:
             # The captured substeps move the palm from its current position to ``pos``.
-            self.t_palm_pos_start[:] = self.t_body_q[self.i_palm, :3]
-            self.t_palm_pos_end[:] = pos
-            self.t_palm_quat[:] = self.grasp_palm_quat
-            self.t_palm_yaw_start[:] = self.t_palm_yaw_end
-            self.t_palm_yaw_end[:] = self.palm_yaw
+            self.palm.pos_start[:] = self.view.body_q[self.index.palm, :3]
+            self.palm.pos_end[:] = pos
+            self.palm.quat[:] = self.grasp.palm_quat
+            self.palm.yaw_start[:] = self.palm.yaw_end
+            self.palm.yaw_end[:] = self.act.palm_yaw
             return
         # The orientation is fixed per episode (root angles set at reset); the prismatic part of the
         # root chain is the palm position expressed in the anchor frame.
-        self.root_q_cmd[:, :3] = pos @ self.anchor_rot
-        self.t_target[self.i_root_q] = self.root_q_cmd
+        self.palm.root_q_cmd[:, :3] = pos @ self.palm.anchor_rot
+        self.view.target[self.index.root_q] = self.palm.root_q_cmd
 
     # ------------------------------------------------------------------------------------------
     # VecEnv
@@ -392,18 +336,18 @@ class GraspEnv:
             )
         mdp_actions.apply_actions(self, actions)
         t = self.episode_length_buf
-        self.root_cmd_pos = (
+        self.palm.cmd_pos = (
             self.script.palm_command(
-                t + 1, self.grasp_palm_pos, self.approach_dir, self.scoring.now.lift_start
+                t + 1, self.grasp.palm_pos, self.grasp.approach_dir, self.scoring.now.lift_start
             )
-            + self.palm_offset
+            + self.act.palm_offset
         )
-        self._command_palm(self.root_cmd_pos)
+        self._command_palm(self.palm.cmd_pos)
         # The push tests an object the hand holds: once it has failed the lift or left the grip under
         # a push its test is over and the push stops. Pushed on, a lost 1.5 g sponge (sponge_cube_s)
         # reached kilometres in the remaining pushes and the simulation broke (measured).
-        push = self.script.disturbance(t + 1, self.disturb_order)
-        self.t_object_force[:] = push * (self.scoring.now.lift_ok & self.scoring.now.disturb_ok)[:, None]
+        push = self.script.disturbance(t + 1, self.draw.disturb_order)
+        self.view.object_force[:] = push * (self.scoring.now.lift_ok & self.scoring.now.disturb_ok)[:, None]
 
         self._launch_step()
         self.episode_length_buf = self.episode_length_buf + 1

@@ -48,10 +48,10 @@ def run(worlds: int = 4, seed: int = 0, every: int = 60, log: Any = print) -> li
             phase = env.phase_of(env.episode_length_buf)
             rise = (env.object_state()[0][:, 2] - start_z) * 100.0
             for w in torch.nonzero(phase == PHASES.index("hold")).flatten().tolist():
-                hold[w] = (float(rise[w]), sum(finger_forces(env.t_pad_force_object[w]).values()))
+                hold[w] = (float(rise[w]), sum(finger_forces(env.view.pad_force_object[w]).values()))
             if t % every == 0:
                 for w in range(worlds):
-                    pads = finger_forces(env.t_pad_force_object[w])
+                    pads = finger_forces(env.view.pad_force_object[w])
                     forces = "  ".join(f"{f} {n:5.2f}" for f, n in pads.items())
                     log(
                         f"step {t:3d}  world {w} {names[w]:16s} {PHASES[int(phase[w])]:8s} "

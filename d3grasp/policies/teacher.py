@@ -4,9 +4,9 @@ Under camera perception the planner places the grasp at the camera's estimate of
 The teacher knows the truth (computed where the episode is placed, ``mdp.events``) and moves the
 wrist by one of two corrections, its fingers the rule's touch-stopped closing (zero action):
 
-- ``env.pose_correction``: onto the same grasp at the true pose (offset and turn), where the wrist's
+- ``env.grasp.pose_correction``: onto the same grasp at the true pose (offset and turn), where the wrist's
   limits allow it;
-- ``env.centre_correction``: else by the camera's centre error only, the planned yaw kept. The grasp
+- ``env.grasp.centre_correction``: else by the camera's centre error only, the planned yaw kept. The grasp
   sits ~0.17 m from the object's centre, so a yaw error of 0.3-0.8 rad moves it by 4-16 cm: larger
   than any wrist, and for the objects that give such errors (cylinders, bottles, bowls, balls, crosses:
   a box fit's yaw is arbitrary when the footprint is round or square) the turned grasp is the same
@@ -54,11 +54,11 @@ class PoseTeacher:
         """(W, 4) the correction each world's wrist moves by: the full one where it is within the
         wrist's limits, else the centre's with no turn."""
         env, cfg = self.env, self.env.cfg
-        full = env.pose_correction
+        full = env.grasp.pose_correction
         fits = (full[:, :3].abs() <= cfg.palm_offset_limit).all(dim=1) & (
             full[:, 3].abs() <= cfg.palm_yaw_limit
         )
-        centre = torch.cat([env.centre_correction, torch.zeros_like(full[:, :1])], dim=1)
+        centre = torch.cat([env.grasp.centre_correction, torch.zeros_like(full[:, :1])], dim=1)
         return torch.where(fits[:, None], full, centre)
 
     def actions(self) -> torch.Tensor:

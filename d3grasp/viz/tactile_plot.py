@@ -43,8 +43,8 @@ class TactileTrace:
             from d3grasp.vocabulary import GRASP_TYPES
 
             e = env.world_entries[w]
-            self.meta = {"object": e.id, "kind": e.kind, "grasp": GRASP_TYPES[int(env.grasp_id[w])]}
-        f = env.t_pad_force if self.sensed else env.t_pad_force_true
+            self.meta = {"object": e.id, "kind": e.kind, "grasp": GRASP_TYPES[int(env.grasp.type_id[w])]}
+        f = env.view.pad_force if self.sensed else env.view.pad_force_true
         self.forces.append(np.linalg.norm(f[w].cpu().numpy(), axis=-1))
         for ep in episodes or ():
             if int(ep.get("env", -1)) == w:

@@ -173,14 +173,14 @@ class VideoRecorder:
         th, tw = self.intrinsics.height, self.intrinsics.width
         frame = np.full((rows * th, cols * tw, 3), 255, dtype=np.uint8)
         phase = env.phase_of(env.episode_length_buf).tolist()
-        forces = np.linalg.norm(env.t_pad_force_true.cpu().numpy(), axis=-1)
+        forces = np.linalg.norm(env.view.pad_force_true.cpu().numpy(), axis=-1)
         for k, w in enumerate(self.worlds):
             tile = rgba[k][..., :3]
             if self.overlay and tw >= OVERLAY_MIN_SIZE[0] and th >= OVERLAY_MIN_SIZE[1]:
                 e = env.world_entries[w]
                 t = float(env.episode_length_buf[w]) * env.dt
                 lines = [
-                    f"{e.id} ({GRASP_TYPES[int(env.grasp_id[w])]})",
+                    f"{e.id} ({GRASP_TYPES[int(env.grasp.type_id[w])]})",
                     f"{PHASES[phase[w]]}  t={t:4.2f} s",
                 ]
                 tile = draw_overlay(tile, lines, forces[w])

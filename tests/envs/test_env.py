@@ -104,7 +104,7 @@ def _run_baseline_episode(env, pushes: list | None = None) -> list[dict]:
         obs, _, _, extras = env.step(ctl.act(obs))
         episodes += extras.get("episodes", [])
         if pushes is not None:
-            pushes.append(env.t_object_force.clone())
+            pushes.append(env.view.object_force.clone())
     return episodes
 
 
@@ -137,9 +137,9 @@ def test_open_hand_never_counts_as_a_lift():
     env = _box_env(action_mode="absolute")
     episodes, pushes = [], []
     for _ in range(env.max_episode_length):
-        _, _, _, extras = env.step(env.open_action.expand(1, -1))
+        _, _, _, extras = env.step(env.act.open_action.expand(1, -1))
         episodes += extras.get("episodes", [])
-        pushes.append(env.t_object_force.clone())
+        pushes.append(env.view.object_force.clone())
     assert len(episodes) == 1
     assert not episodes[0]["s_lift"] and not episodes[0]["s_disturb"]
     # Never lifted: nothing to test under a push, so no push (a free object pushed for 12 s flies off).
@@ -164,7 +164,7 @@ def test_zero_residual_reproduces_the_rule_based_controller():
         for _ in range(closing_steps):
             act = ctl.act(obs) if mode == "absolute" else torch.zeros(1, env.num_actions)
             obs, *_ = env.step(act)
-            trace.append(env.finger_target.clone())
+            trace.append(env.act.finger_target.clone())
         targets.append(torch.stack(trace))
     assert (targets[0][-1] - targets[0][0]).abs().max() > 0.1  # the rule is closing the hand
     torch.testing.assert_close(targets[1], targets[0], atol=1e-5, rtol=0)
@@ -189,15 +189,15 @@ def test_residual_is_low_pass_filtered():
     )
     action = torch.linspace(-1.0, 1.0, 16)[None]
     rest = env.residual_base.target.clone()  # the rule holds its rest pose through the approach
-    a_s, target = env.cfg.action_smoothing, env.finger_target.clone()
+    a_s, target = env.cfg.action_smoothing, env.act.finger_target.clone()
     for k in range(1, 9):
         env.step(action)
         residual = action * (1.0 - (1.0 - b) ** k)
-        torch.testing.assert_close(env.residual, residual, atol=1e-6, rtol=0)
+        torch.testing.assert_close(env.act.residual, residual, atol=1e-6, rtol=0)
         torch.testing.assert_close(env.get_observations()["policy"][:, -16:], residual, atol=1e-6, rtol=0)
         desired = torch.clamp(rest + env.cfg.residual_scale * residual, env.lower, env.upper)
         target = a_s * desired + (1.0 - a_s) * target
-        torch.testing.assert_close(env.finger_target, target, atol=1e-5, rtol=0)
+        torch.testing.assert_close(env.act.finger_target, target, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="residual_smoothing"):
         _env((RIGID_MEDIUM_BOX,), residual_smoothing=0.0)
 
@@ -220,8 +220,8 @@ def test_synergy_action_squeezes_each_fingers_flexion_joints():
         expected[0, 4 * f + 1 : 4 * f + 4] = action[0, f]
     for k in range(1, 6):
         env.step(action)
-        torch.testing.assert_close(env.residual, expected * (1.0 - (1.0 - b) ** k), atol=1e-6, rtol=0)
-    assert torch.all(env.residual[0, ::4] == 0.0)
+        torch.testing.assert_close(env.act.residual, expected * (1.0 - (1.0 - b) ** k), atol=1e-6, rtol=0)
+    assert torch.all(env.act.residual[0, ::4] == 0.0)
     with pytest.raises(ValueError, match="shape"):
         env.step(torch.zeros(1, 16))
 
@@ -234,7 +234,7 @@ def test_residual_integrator_holds_and_saturates():
     for action in ([1.0, -0.5, 0.2, 0.0], [0.0] * 4) + ([1.0, -1.0, 0.5, -0.1],) * 3:
         env.step(torch.tensor([action]))
         expected = np.clip(expected + rate * np.array(action), -1.0, 1.0)
-        flexion = env.residual[0].reshape(4, 4)[:, 1:].numpy()
+        flexion = env.act.residual[0].reshape(4, 4)[:, 1:].numpy()
         np.testing.assert_allclose(flexion, np.repeat(expected[:, None], 3, axis=1), atol=1e-6)
     assert expected[0] == 1.0 and expected[1] == -1.0  # saturated at the clip
     with pytest.raises(ValueError, match="residual_rate"):
@@ -252,7 +252,7 @@ def test_residual_waits_for_its_start_phase():
     while steps_in_grasp < 4:
         in_grasp = int(env.phase_of(env.episode_length_buf)[0]) >= grasp  # the phase this step acts in
         env.step(action)
-        flexion = env.residual[0].reshape(4, 4)[:, 1:]
+        flexion = env.act.residual[0].reshape(4, 4)[:, 1:]
         if not in_grasp:
             assert torch.all(flexion == 0.0)
             continue
@@ -279,12 +279,12 @@ def test_decisions_are_held_for_decision_steps():
         takes = bool(env.action_takes_effect()[0])
         env.step(action)
         if not in_grasp:
-            assert not takes and torch.all(env.actions == 0.0) and torch.all(env.residual == 0.0)
+            assert not takes and torch.all(env.act.actions == 0.0) and torch.all(env.act.residual == 0.0)
             continue
         assert takes == (steps_in_grasp % k == 0), steps_in_grasp
         if takes:
             taken.append(action[0])
-        held.append(env.actions[0].clone())
+        held.append(env.act.actions[0].clone())
         steps_in_grasp += 1
     for n, a in enumerate(held):
         torch.testing.assert_close(a, taken[n // k], atol=0, rtol=0)
@@ -300,8 +300,9 @@ def test_a_still_wrist_is_the_scripted_palm_path():
     for _ in range(60):
         plain.step(torch.zeros(1, plain.num_actions))
         wrist.step(torch.zeros(1, wrist.num_actions))
-        torch.testing.assert_close(wrist.t_body_q[wrist.i_palm], plain.t_body_q[plain.i_palm], atol=0, rtol=0)
-        torch.testing.assert_close(wrist.finger_target, plain.finger_target, atol=0, rtol=0)
+        palms = wrist.view.body_q[wrist.index.palm], plain.view.body_q[plain.index.palm]
+        torch.testing.assert_close(*palms, atol=0, rtol=0)
+        torch.testing.assert_close(wrist.act.finger_target, plain.act.finger_target, atol=0, rtol=0)
 
 
 def test_the_wrist_offsets_the_palm_at_its_rate_up_to_its_limit():
@@ -315,16 +316,16 @@ def test_the_wrist_offsets_the_palm_at_its_rate_up_to_its_limit():
     a = torch.tensor([[0.0, 0.0, 0.0, 0.0, 1.0, -0.5, 0.2, 0.5]])
     dt = env.dt
     for n in range(1, 31):
-        plan = env.script.palm_command(env.episode_length_buf + 1, env.grasp_palm_pos, env.approach_dir)
+        plan = env.script.palm_command(env.episode_length_buf + 1, env.grasp.palm_pos, env.grasp.approach_dir)
         env.step(a)
         want = np.clip(a[0, 4:7].numpy() * limit, -n * rate * dt, n * rate * dt)
-        np.testing.assert_allclose(env.palm_offset[0].numpy(), want, atol=1e-7)
-        np.testing.assert_allclose(env.root_cmd_pos[0].numpy(), plan[0].numpy() + want, atol=1e-6)
+        np.testing.assert_allclose(env.act.palm_offset[0].numpy(), want, atol=1e-7)
+        np.testing.assert_allclose(env.palm.cmd_pos[0].numpy(), plan[0].numpy() + want, atol=1e-6)
         yaw = float(np.clip(0.5 * yaw_limit, -n * yaw_rate * dt, n * yaw_rate * dt))
-        assert float(env.palm_yaw[0]) == pytest.approx(yaw, abs=1e-6)
+        assert float(env.act.palm_yaw[0]) == pytest.approx(yaw, abs=1e-6)
     # The palm body's orientation: the grasp orientation turned by the yaw about the vertical.
-    q = env.t_body_q[env.i_palm][0, 3:].numpy()
-    g = env.grasp_palm_quat[0].numpy()
+    q = env.view.body_q[env.index.palm][0, 3:].numpy()
+    g = env.grasp.palm_quat[0].numpy()
     turn = np.array([0.0, 0.0, np.sin(0.5 * yaw), np.cos(0.5 * yaw)])
     expected = _quat_mul(turn, g)
     assert min(np.abs(q - expected).max(), np.abs(q + expected).max()) < 1e-5
@@ -334,12 +335,12 @@ def test_the_wrist_offsets_the_palm_at_its_rate_up_to_its_limit():
     hold, ended = PHASES.index("hold"), []
     while int(env.phase_of(env.episode_length_buf)[0]) < hold:
         ended += env.step(up)[3].get("episodes", [])
-    held = env.palm_offset.clone()
+    held = env.act.palm_offset.clone()
     torch.testing.assert_close(held[0], torch.tensor([0.0, 0.0, 0.2 * limit]), atol=1e-7, rtol=0)
     for _ in range(5):
         ended += env.step(-up)[3].get("episodes", [])
     assert not ended
-    torch.testing.assert_close(env.palm_offset, held, atol=0, rtol=0)
+    torch.testing.assert_close(env.act.palm_offset, held, atol=0, rtol=0)
     with pytest.raises(ValueError, match="wrist"):
         _env((RIGID_MEDIUM_BOX,), palm_offset_limit=0.01, action_mode="absolute")
 
@@ -362,9 +363,9 @@ def test_disturbance_force_pushes_a_free_object():
     # The hand waits in its pre-grasp pose; push the free box along +x with 2.5 N for 0.5 s.
     env = _box_env(sim__use_graph=False)
     start = env.object_state()[0].clone()
-    mass = float(env.object_mass[0])
+    mass = float(env.draw.object_mass[0])
     for _ in range(30):
-        env.t_object_force[:] = torch.tensor([[2.5, 0.0, 0.0]])
+        env.view.object_force[:] = torch.tensor([[2.5, 0.0, 0.0]])
         env.launch_step()
     moved = env.object_state()[0][0] - start[0]
     # Pushing force 2.5 N beats the friction limit mu*m*g (~1.4 N at mu = 1): the box slides along +x.
@@ -400,7 +401,7 @@ def test_held_object_contact_forces_carry_its_weight():
         nets.append(f[body[s0] == obj].sum(0) - f[body[s1] == obj].sum(0))
     net = np.mean(nets, axis=0)
     weight = float(env.model.body_mass.numpy()[obj]) * 9.81
-    lifted = env.object_state()[0][0, 2] - env.object_start[0, 2]
+    lifted = env.object_state()[0][0, 2] - env.draw.object_start[0, 2]
     assert lifted > 0.08
     assert 0.8 * weight < net[2] < 2.0 * weight, (net, weight)
     assert np.hypot(net[0], net[1]) < weight, (net, weight)

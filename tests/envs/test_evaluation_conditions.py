@@ -46,22 +46,22 @@ def test_evaluation_episode_pushes_six_directions_for_two_seconds(eval_env) -> N
     np.testing.assert_array_equal(DISTURB_DIRECTIONS, expected)
     assert DISTURB_NAMES == ("+x", "-x", "+y", "-y", "+z", "-z")
     # All six, in this order, in every evaluation world.
-    np.testing.assert_array_equal(eval_env.disturb_order.cpu().numpy(), np.tile(np.arange(6), (3, 1)))
+    np.testing.assert_array_equal(eval_env.draw.disturb_order.cpu().numpy(), np.tile(np.arange(6), (3, 1)))
 
 
 def test_evaluation_draws_no_dynamics(eval_env) -> None:
     """Friction, masses and drive gains stay nominal and there is no action latency: the evaluation
     draws only the object's place, its yaw and the pads' sensor noise."""
     m, lay = eval_env.model, eval_env.layout
-    np.testing.assert_array_equal(m.shape_material_mu.numpy(), eval_env.nominal_shape_mu)
-    np.testing.assert_array_equal(m.body_mass.numpy(), eval_env.nominal_body_mass)
-    np.testing.assert_array_equal(m.joint_target_ke.numpy(), eval_env.nominal_ke)
-    assert int(eval_env.latency.abs().sum()) == 0
+    np.testing.assert_array_equal(m.shape_material_mu.numpy(), eval_env.nominal.shape_mu)
+    np.testing.assert_array_equal(m.body_mass.numpy(), eval_env.nominal.body_mass)
+    np.testing.assert_array_equal(m.joint_target_ke.numpy(), eval_env.nominal.ke)
+    assert int(eval_env.draw.latency.abs().sum()) == 0
     for w in range(3):
         assert float(m.shape_material_mu.numpy()[lay.object_shapes[w][0]]) == pytest.approx(1.0)
-    dyn = eval_env.episode_dynamics.cpu().numpy()
+    dyn = eval_env.draw.dynamics.cpu().numpy()
     np.testing.assert_array_equal(dyn, np.tile([1.0, 1.0, 1.0, 0.0], (3, 1)))
     assert eval_env.cfg.randomization.tactile_noise_std == 0.05
     assert eval_env.sensors.tactile_cfg.noise_std == 0.05
-    start = eval_env.object_start.cpu().numpy()
+    start = eval_env.draw.object_start.cpu().numpy()
     assert np.all(np.abs(start[:, :2]) <= 0.01 + 1e-6)  # placed within 1 cm

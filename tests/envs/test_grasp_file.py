@@ -118,10 +118,10 @@ def test_the_environment_places_the_stored_grasp(tmp_path: Path) -> None:
     grasp_file_path(manifest).write_text(json.dumps(data))
     env = make_env(num_envs=1, objects={"manifest": str(manifest), "ids": (BOX,)}, eval_mode=True)
     try:
-        assert env.grasp_id.tolist() == [0]  # top: the higher score
-        obj = env.object_start[0].double().numpy()
-        r = Rotation.from_quat(env.grasp_palm_quat[0].double().numpy()).as_matrix()
-        local = r.T @ (obj - env.grasp_palm_pos[0].double().numpy())  # object centre in the palm frame
+        assert env.grasp.type_id.tolist() == [0]  # top: the higher score
+        obj = env.draw.object_start[0].double().numpy()
+        r = Rotation.from_quat(env.grasp.palm_quat[0].double().numpy()).as_matrix()
+        local = r.T @ (obj - env.grasp.palm_pos[0].double().numpy())  # object centre in the palm frame
         along = min(ex[0], ex[1])
         np.testing.assert_allclose(local, [0.12 + 0.5 * along, -0.03, 0.04 + 0.5 * ex[2]], atol=1e-5)
         # grasp_source="rule" ignores the file.

@@ -20,7 +20,7 @@ def _env(residual: np.ndarray, k: float, residual_mode: bool = True) -> SimpleNa
         num_envs=residual.shape[0],
         torch_device=torch.device("cpu"),
         residual_base=object() if residual_mode else None,
-        residual=torch.as_tensor(residual, dtype=torch.float32),
+        act=SimpleNamespace(residual=torch.as_tensor(residual, dtype=torch.float32)),
     )
 
 

@@ -52,7 +52,7 @@ def camera_env():
 def test_the_correction_is_zero_with_the_true_pose():
     env = _env(None)
     try:
-        assert torch.count_nonzero(env.pose_correction) == 0
+        assert torch.count_nonzero(env.grasp.pose_correction) == 0
     finally:
         env.close()
 
@@ -64,15 +64,15 @@ def test_the_correction_moves_the_planned_grasp_onto_the_grasp_at_the_true_pose(
     env = camera_env
     plan = env.grasp_plan[BOX]
     for w in range(env.num_envs):
-        corr = env.pose_correction[w].double().numpy()
+        corr = env.grasp.pose_correction[w].double().numpy()
         assert env.loc_records[w]["loc_correction"] == pytest.approx(np.linalg.norm(corr[:3]), rel=1e-5)
-        obj_pos = env.object_start[w].double().numpy()
-        body_q = env.t_body_q[env.i_obj_body][w].double().numpy()
+        obj_pos = env.draw.object_start[w].double().numpy()
+        body_q = env.view.body_q[env.index.obj_body][w].double().numpy()
         r_obj = _quat_to_matrix(body_q[3:])
         true_yaw = math.atan2(r_obj[1, 0], r_obj[0, 0])
-        planned_pos = env.grasp_palm_pos[w].double().numpy()
-        planned_rot = _quat_to_matrix(env.grasp_palm_quat[w].double().numpy())
-        g = plan.grasps[GRASP_TYPES[int(env.grasp_id[w])]]
+        planned_pos = env.grasp.palm_pos[w].double().numpy()
+        planned_rot = _quat_to_matrix(env.grasp.palm_quat[w].double().numpy())
+        g = plan.grasps[GRASP_TYPES[int(env.grasp.type_id[w])]]
         matches = []
         for twin in (0.0, math.pi):
             yaw = true_yaw + twin
@@ -87,7 +87,7 @@ def test_the_correction_moves_the_planned_grasp_onto_the_grasp_at_the_true_pose(
         # The centre's correction: the true origin less the camera's pose estimate, the box fit
         # registered to the box's footprint: across, that registration's recorded error; up, the box
         # fit's height error (its 3-D error less its horizontal one).
-        centre = env.centre_correction[w].double().numpy()
+        centre = env.grasp.centre_correction[w].double().numpy()
         rec = env.loc_records[w]
         assert np.linalg.norm(centre[:2]) == pytest.approx(rec["loc_registered_xy"], rel=1e-4, abs=1e-6)
         up = math.sqrt(max(rec["loc_error"] ** 2 - rec["loc_error_xy"] ** 2, 0.0))
@@ -98,17 +98,17 @@ def test_the_teacher_commands_the_correction_over_the_limits(camera_env):
     """Within the wrist's limits the full correction (offset and turn), scaled to actions; beyond them
     the centre's correction with no turn, clipped to the limit."""
     env = camera_env
-    saved = env.pose_correction.clone(), env.centre_correction.clone()
+    saved = env.grasp.pose_correction.clone(), env.grasp.centre_correction.clone()
     try:
-        env.pose_correction[:] = torch.tensor([[0.006, -0.015, 0.0, 0.1], [0.0, 0.09, -0.003, -0.2]])
-        env.centre_correction[:] = torch.tensor([[0.001, 0.002, 0.003], [0.006, -0.045, 0.0]])
+        env.grasp.pose_correction[:] = torch.tensor([[0.006, -0.015, 0.0, 0.1], [0.0, 0.09, -0.003, -0.2]])
+        env.grasp.centre_correction[:] = torch.tensor([[0.001, 0.002, 0.003], [0.006, -0.045, 0.0]])
         a = PoseTeacher(env).actions()
         assert a.shape == (2, env.num_actions)
         assert torch.count_nonzero(a[:, :-4]) == 0  # the rule's fingers
         want = torch.tensor([[0.2, -0.5, 0.0, 0.2], [0.2, -1.0, 0.0, 0.0]])
         torch.testing.assert_close(a[:, -4:], want, atol=1e-6, rtol=0)
     finally:
-        env.pose_correction[:], env.centre_correction[:] = saved
+        env.grasp.pose_correction[:], env.grasp.centre_correction[:] = saved
 
 
 def test_the_teacher_needs_a_wrist():
@@ -138,13 +138,13 @@ def test_plan_yaw_offset_turns_the_planned_grasp_about_the_object():
     try:
         plan = env.grasp_plan[BOX]
         for w in range(env.num_envs):
-            obj_pos = env.object_start[w].double().numpy()
-            r_obj = _quat_to_matrix(env.t_body_q[env.i_obj_body][w].double().numpy()[3:])
+            obj_pos = env.draw.object_start[w].double().numpy()
+            r_obj = _quat_to_matrix(env.view.body_q[env.index.obj_body][w].double().numpy()[3:])
             yaw = math.atan2(r_obj[1, 0], r_obj[0, 0]) + math.pi
-            g = plan.grasps[GRASP_TYPES[int(env.grasp_id[w])]]
-            in_object = _rot_z(yaw).T @ (env.grasp_palm_pos[w].double().numpy() - obj_pos)
+            g = plan.grasps[GRASP_TYPES[int(env.grasp.type_id[w])]]
+            in_object = _rot_z(yaw).T @ (env.grasp.palm_pos[w].double().numpy() - obj_pos)
             np.testing.assert_allclose(in_object, g.palm_pos, atol=2e-4)
-            planned_rot = _quat_to_matrix(env.grasp_palm_quat[w].double().numpy())
+            planned_rot = _quat_to_matrix(env.grasp.palm_quat[w].double().numpy())
             np.testing.assert_allclose(planned_rot, _rot_z(yaw) @ _quat_to_matrix(g.palm_quat), atol=2e-4)
     finally:
         env.close()

@@ -46,13 +46,14 @@ def _env(num_worlds: int, lift_on_touch: bool = True) -> SimpleNamespace:
         physics=SimpleNamespace(state_0=SimpleNamespace(body_q=wp.zeros(W, dtype=wp.transform, device=dev))),
         layout=SimpleNamespace(palm_body=np.arange(W)),
         residual_base=None,
-        object_start=torch.zeros(W, 3),
-        disturb_order=torch.arange(6).expand(W, 6).clone(),
+        draw=SimpleNamespace(
+            object_start=torch.zeros(W, 3), disturb_order=torch.arange(6).expand(W, 6).clone()
+        ),
         episode_length_buf=torch.zeros(W, dtype=torch.long),
         world_entries=[
             SimpleNamespace(id=f"o{w}", kind="rigid", family="box", size_bin="small") for w in range(W)
         ],
-        grasp_id=torch.zeros(W, dtype=torch.long),
+        grasp=SimpleNamespace(type_id=torch.zeros(W, dtype=torch.long)),
         max_strain=torch.zeros(W),
         episode_return=torch.zeros(W),
         loc_records=[{} for _ in range(W)],

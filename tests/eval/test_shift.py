@@ -24,7 +24,7 @@ def _starts(shift: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
         scene_shift=shift,
     )
     try:
-        return env.object_start.double().numpy().copy(), env.grasp_palm_pos.double().numpy().copy()
+        return env.draw.object_start.double().numpy().copy(), env.grasp.palm_pos.double().numpy().copy()
     finally:
         env.close()
 

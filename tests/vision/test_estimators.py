@@ -49,7 +49,7 @@ def test_a_new_estimator_is_a_registration(monkeypatch: pytest.MonkeyPatch) -> N
         placed = estimator.seen[-2:]
         assert [p.world for p in placed] == [0, 1]
         for p in placed:
-            np.testing.assert_allclose(p.pos, env.object_start[p.world].numpy(), atol=1e-6)
+            np.testing.assert_allclose(p.pos, env.draw.object_start[p.world].numpy(), atol=1e-6)
             rec = env.loc_records[p.world]
             # The environment scores the estimate against the truth: the centre was told 1 cm off.
             assert rec["perception"] == "shifted"

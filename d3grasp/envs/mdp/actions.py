@@ -67,15 +67,15 @@ def acting(env: GraspEnv) -> torch.Tensor:
 def hold_decisions(env: GraspEnv, actions: torch.Tensor) -> torch.Tensor:
     """The actions the worlds apply at the coming step under ``decision_steps`` k: a world takes the
     policy's action at the first step its actions act and every k-th step after, and holds it in
-    between (``env.actions`` is the action held). Residual modes only: in the absolute mode the
+    between (``env.act.actions`` is the action held). Residual modes only: in the absolute mode the
     actions are the whole controller (the rule-based baseline among them) and act every step."""
     k = env.cfg.decision_steps
     if k == 1 or env.residual_base is None:
         return actions
     now = acting(env)
-    decide = now & (env.decision_age % k == 0)
-    env.decision_age = torch.where(now, env.decision_age + 1, torch.zeros_like(env.decision_age))
-    return torch.where(decide[:, None], actions, env.actions)
+    decide = now & (env.act.decision_age % k == 0)
+    env.act.decision_age = torch.where(now, env.act.decision_age + 1, torch.zeros_like(env.act.decision_age))
+    return torch.where(decide[:, None], actions, env.act.actions)
 
 
 def apply_actions(env: GraspEnv, actions: torch.Tensor) -> None:
@@ -84,11 +84,11 @@ def apply_actions(env: GraspEnv, actions: torch.Tensor) -> None:
     actions = hold_decisions(env, actions)
     # Action latency: a world with latency k applies the action of k steps ago.
     hist = (
-        torch.cat([actions[:, None], env.action_hist[:, :-1]], dim=1)
-        if env.action_hist.shape[1]
+        torch.cat([actions[:, None], env.act.history[:, :-1]], dim=1)
+        if env.act.history.shape[1]
         else actions[:, None]
     )
-    lat = env.latency.clamp(max=hist.shape[1] - 1)
+    lat = env.draw.latency.clamp(max=hist.shape[1] - 1)
     applied = hist[torch.arange(env.num_envs), lat]
     if has_wrist(cfg):
         move_wrist(env, applied[:, -WRIST_ACTIONS:])
@@ -96,35 +96,35 @@ def apply_actions(env: GraspEnv, actions: torch.Tensor) -> None:
     if env.residual_base is not None:
         env.residual_base.act()  # advances the rule on the current touch readings
         if cfg.action_mode == "synergy":
-            applied = applied @ env.synergy.T
+            applied = applied @ env.act.synergy.T
         if cfg.residual_rate > 0.0:
-            env.residual = (env.residual + cfg.residual_rate * applied).clamp(-1.0, 1.0)
+            env.act.residual = (env.act.residual + cfg.residual_rate * applied).clamp(-1.0, 1.0)
         else:
             b = cfg.residual_smoothing
-            env.residual = b * applied + (1.0 - b) * env.residual
+            env.act.residual = b * applied + (1.0 - b) * env.act.residual
         # Before cfg.residual_start (e.g. the scripted approach) the rule alone drives the fingers.
         if PHASES.index(cfg.residual_start) > 0:  # from the first phase on there is nothing to wait for
-            env.residual = env.residual * fingers_acting(env)[:, None]
-        desired = env.residual_base.target + cfg.residual_scale * env.residual
+            env.act.residual = env.act.residual * fingers_acting(env)[:, None]
+        desired = env.residual_base.target + cfg.residual_scale * env.act.residual
         desired = torch.minimum(torch.maximum(desired, env.lower), env.upper)
     else:
         desired = env.lower + 0.5 * (applied + 1.0) * (env.upper - env.lower)
     a = cfg.action_smoothing
-    env.finger_target = a * desired + (1.0 - a) * env.finger_target
-    env.t_target[env.i_finger_q] = env.finger_target
-    env.actions = actions
-    if env.action_hist.shape[1]:
-        env.action_hist = hist
+    env.act.finger_target = a * desired + (1.0 - a) * env.act.finger_target
+    env.view.target[env.index.finger_q] = env.act.finger_target
+    env.act.actions = actions
+    if env.act.history.shape[1]:
+        env.act.history = hist
 
 
 def move_wrist(env: GraspEnv, wrist: torch.Tensor) -> None:
-    """Move every world's palm offset (``env.palm_offset`` m, ``env.palm_yaw`` rad) towards the wrist
+    """Move every world's palm offset (``env.act.palm_offset`` m, ``env.act.palm_yaw`` rad) towards the wrist
     actions (W, 4) x their limits, at no more than the configured rates per axis; held outside the
     phases the wrist acts in. The env adds the offset to the scripted palm path."""
     cfg = env.cfg
     moving = wrist_acting(env)
     max_step, max_turn = cfg.palm_offset_rate * env.dt, cfg.palm_yaw_rate * env.dt
-    step = (wrist[:, :3] * cfg.palm_offset_limit - env.palm_offset).clamp(-max_step, max_step)
-    turn = (wrist[:, 3] * cfg.palm_yaw_limit - env.palm_yaw).clamp(-max_turn, max_turn)
-    env.palm_offset = env.palm_offset + step * moving[:, None]
-    env.palm_yaw = env.palm_yaw + turn * moving
+    step = (wrist[:, :3] * cfg.palm_offset_limit - env.act.palm_offset).clamp(-max_step, max_step)
+    turn = (wrist[:, 3] * cfg.palm_yaw_limit - env.act.palm_yaw).clamp(-max_turn, max_turn)
+    env.act.palm_offset = env.act.palm_offset + step * moving[:, None]
+    env.act.palm_yaw = env.act.palm_yaw + turn * moving

@@ -123,35 +123,35 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
         estimated=estimated and not registered,
     )
     _set_hand(env, w, arrays, pose)
-    env.pose_correction[w] = 0.0
-    env.centre_correction[w] = 0.0
+    env.grasp.pose_correction[w] = 0.0
+    env.grasp.centre_correction[w] = 0.0
     if estimated:
         true_yaw = _nearer_end(yaw, used_yaw)
         corr = _pose_correction(pose, used_yaw, place(obj_pos, true_yaw, ex), true_yaw)
         centre = np.asarray(obj_pos, dtype=np.float64) - np.asarray(plan_pos, dtype=np.float64)
-        env.pose_correction[w] = torch.as_tensor(corr, dtype=torch.float32)
-        env.centre_correction[w] = torch.as_tensor(centre, dtype=torch.float32)
+        env.grasp.pose_correction[w] = torch.as_tensor(corr, dtype=torch.float32)
+        env.grasp.centre_correction[w] = torch.as_tensor(centre, dtype=torch.float32)
         env.loc_records[w].update(
             loc_correction=float(np.linalg.norm(corr[:3])),
             loc_correction_yaw=float(abs(corr[3])),
             loc_correction_centre=float(np.linalg.norm(centre)),
         )
-    env.grasp_id[w] = GRASP_TYPES.index(pose.grasp)
-    env.object_start[w] = torch.as_tensor(obj_pos, dtype=torch.float32)
+    env.grasp.type_id[w] = GRASP_TYPES.index(pose.grasp)
+    env.draw.object_start[w] = torch.as_tensor(obj_pos, dtype=torch.float32)
     if not soft:
         q0 = lay.object_joint_q[w]
         arrays.joint_q[q0 : q0 + 7] = [*obj_pos, *qz]
         b = lay.object_body[w]
         scale = env.rng.uniform(*rnd.object_mass_scale) if rand else 1.0
-        arrays.body_mass[b] = env.nominal_body_mass[b] * scale
-        arrays.body_inv_mass[b] = env.nominal_body_inv_mass[b] / scale
-        env.episode_dynamics[w, 0] = scale
+        arrays.body_mass[b] = env.nominal.body_mass[b] * scale
+        arrays.body_inv_mass[b] = env.nominal.body_inv_mass[b] / scale
+        env.draw.dynamics[w, 0] = scale
     else:
         arrays.particle_q[p0 : p0 + n] = placed
         t0, nt = lay.tet_start[w], lay.tet_count[w]
         scale = env.rng.uniform(*rnd.youngs_modulus_scale) if rand else 1.0
-        arrays.tet_materials[t0 : t0 + nt, :2] = env.nominal_tet_materials[t0 : t0 + nt, :2] * scale
-        env.episode_dynamics[w, 0] = scale
+        arrays.tet_materials[t0 : t0 + nt, :2] = env.nominal.tet_materials[t0 : t0 + nt, :2] * scale
+        env.draw.dynamics[w, 0] = scale
 
 
 def _plan_grasp(
@@ -216,20 +216,20 @@ def _set_hand(env: GraspEnv, w: int, arrays: ModelArrays, gp: GraspPose) -> None
     arrays.joint_q[lay.root_q[w]] = root
     if not lay.kinematic_palm:
         arrays.joint_target[lay.root_q[w]] = root
-    env.root_q_cmd[w] = torch.as_tensor(root, dtype=torch.float32)
-    env.preshape[w] = torch.as_tensor(gp.preshape, dtype=torch.float32)
+    env.palm.root_q_cmd[w] = torch.as_tensor(root, dtype=torch.float32)
+    env.grasp.preshape[w] = torch.as_tensor(gp.preshape, dtype=torch.float32)
     open_pose = env.open_pose_of(torch.as_tensor([w], device=env.torch_device))[0].cpu().numpy()
     arrays.joint_q[lay.finger_q[w]] = open_pose
     arrays.joint_target[lay.finger_q[w]] = open_pose
-    env.grasp_palm_pos[w] = torch.as_tensor(gp.palm_pos, dtype=torch.float32)
-    env.grasp_palm_quat[w] = torch.as_tensor(gp.palm_quat, dtype=torch.float32)
-    env.approach_dir[w] = torch.as_tensor(gp.approach_dir, dtype=torch.float32)
-    env.root_cmd_pos[w] = torch.as_tensor(pre, dtype=torch.float32)
-    env.t_palm_pos_start[w] = torch.as_tensor(pre, dtype=torch.float32)
-    env.t_palm_pos_end[w] = torch.as_tensor(pre, dtype=torch.float32)
-    env.t_palm_quat[w] = torch.as_tensor(gp.palm_quat, dtype=torch.float32)
-    env.palm_offset[w], env.palm_yaw[w] = 0.0, 0.0
-    env.t_palm_yaw_start[w], env.t_palm_yaw_end[w] = 0.0, 0.0
+    env.grasp.palm_pos[w] = torch.as_tensor(gp.palm_pos, dtype=torch.float32)
+    env.grasp.palm_quat[w] = torch.as_tensor(gp.palm_quat, dtype=torch.float32)
+    env.grasp.approach_dir[w] = torch.as_tensor(gp.approach_dir, dtype=torch.float32)
+    env.palm.cmd_pos[w] = torch.as_tensor(pre, dtype=torch.float32)
+    env.palm.pos_start[w] = torch.as_tensor(pre, dtype=torch.float32)
+    env.palm.pos_end[w] = torch.as_tensor(pre, dtype=torch.float32)
+    env.palm.quat[w] = torch.as_tensor(gp.palm_quat, dtype=torch.float32)
+    env.act.palm_offset[w], env.act.palm_yaw[w] = 0.0, 0.0
+    env.palm.yaw_start[w], env.palm.yaw_end[w] = 0.0, 0.0
 
 
 def _randomise_dynamics(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
@@ -238,21 +238,21 @@ def _randomise_dynamics(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
     rand = rnd.enabled and not cfg.eval_mode
     mu = env.rng.uniform(*rnd.friction) if rand else 1.0
     shapes = np.concatenate([lay.hand_shapes[w], lay.object_shapes[w]])
-    arrays.shape_mu[shapes] = env.nominal_shape_mu[shapes] * mu
+    arrays.shape_mu[shapes] = env.nominal.shape_mu[shapes] * mu
     gain = env.rng.uniform(*rnd.drive_gain_scale) if rand else 1.0
     dofs = lay.finger_dof[w]
-    arrays.drive_ke[dofs] = env.nominal_ke[dofs] * gain
-    arrays.drive_kd[dofs] = env.nominal_kd[dofs] * gain
-    env.latency[w] = (
+    arrays.drive_ke[dofs] = env.nominal.ke[dofs] * gain
+    arrays.drive_kd[dofs] = env.nominal.kd[dofs] * gain
+    env.draw.latency[w] = (
         int(env.rng.integers(rnd.action_latency_steps[0], rnd.action_latency_steps[1] + 1)) if rand else 0
     )
     # What the critic reads of this episode's draw (privileged group; the mass or stiffness scale is
     # written where it is drawn).
-    env.episode_dynamics[w, 1:] = torch.as_tensor([mu, gain, float(env.latency[w])])
+    env.draw.dynamics[w, 1:] = torch.as_tensor([mu, gain, float(env.draw.latency[w])])
     if cfg.eval_mode:
-        env.disturb_order[w] = torch.arange(6)
+        env.draw.disturb_order[w] = torch.arange(6)
     else:
-        env.disturb_order[w] = torch.as_tensor(env.rng.permutation(6))
+        env.draw.disturb_order[w] = torch.as_tensor(env.rng.permutation(6))
 
 
 def _restart_state(env: GraspEnv, ids: np.ndarray, arrays: ModelArrays) -> None:
@@ -266,12 +266,12 @@ def _restart_state(env: GraspEnv, ids: np.ndarray, arrays: ModelArrays) -> None:
     # Joint readings of the reset worlds (the others keep theirs until the next step's IK).
     q_idx = np.concatenate([np.concatenate([lay.root_q[w], lay.finger_q[w]]) for w in ids])
     # Values and index on the tensor's device: index_put_ moves only a scalar value across devices.
-    dev = env.t_joint_q.device
-    env.t_joint_q[torch.as_tensor(q_idx, dtype=torch.long, device=dev)] = torch.as_tensor(
+    dev = env.view.joint_q.device
+    env.view.joint_q[torch.as_tensor(q_idx, dtype=torch.long, device=dev)] = torch.as_tensor(
         arrays.joint_q[q_idx], dtype=torch.float32, device=dev
     )
     dof_idx = np.concatenate([np.concatenate([lay.root_dof[w], lay.finger_dof[w]]) for w in ids])
-    env.t_joint_qd[torch.as_tensor(dof_idx, dtype=torch.long, device=dev)] = 0.0
+    env.view.joint_qd[torch.as_tensor(dof_idx, dtype=torch.long, device=dev)] = 0.0
     bqd = env.state_0.body_qd.numpy()
     bqd[np.isin(model.body_world.numpy(), ids)] = 0.0
     for st in states:
@@ -290,14 +290,14 @@ def _restart_state(env: GraspEnv, ids: np.ndarray, arrays: ModelArrays) -> None:
 
 def _reset_bookkeeping(env: GraspEnv, env_ids: torch.Tensor) -> None:
     env.episode_length_buf[env_ids] = 0
-    env.actions[env_ids] = env.reset_action
-    env.action_hist[env_ids] = env.reset_action
-    env.decision_age[env_ids] = 0
-    env.finger_target[env_ids] = env.open_pose_of(env_ids)
-    env.residual[env_ids] = 0.0
+    env.act.actions[env_ids] = env.act.reset_action
+    env.act.history[env_ids] = env.act.reset_action
+    env.act.decision_age[env_ids] = 0
+    env.act.finger_target[env_ids] = env.open_pose_of(env_ids)
+    env.act.residual[env_ids] = 0.0
     if env.residual_base is not None:
         env.residual_base.reset(env_ids)
-    env.t_object_force[env_ids] = 0.0
+    env.view.object_force[env_ids] = 0.0
     now = env.scoring.now
     now.s_grasp[env_ids] = False
     now.pads_at_lift[env_ids] = False

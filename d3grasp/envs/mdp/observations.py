@@ -38,24 +38,24 @@ Term = Callable[["GraspEnv"], torch.Tensor]
 
 
 def pad_forces(env: GraspEnv) -> torch.Tensor:
-    return torch.nan_to_num(env.t_pad_force).reshape(env.num_envs, -1) / env.cfg.obs.pad_force_per_unit
+    return torch.nan_to_num(env.view.pad_force).reshape(env.num_envs, -1) / env.cfg.obs.pad_force_per_unit
 
 
 def pad_contacts(env: GraspEnv) -> torch.Tensor:
-    return env.t_pad_contact
+    return env.view.pad_contact
 
 
 def joint_positions(env: GraspEnv) -> torch.Tensor:
     """Finger joint positions normalised over their limits to [-1, 1]."""
-    return env.normalize_joints(torch.nan_to_num(env.t_joint_q[env.i_finger_q]))
+    return env.normalize_joints(torch.nan_to_num(env.view.joint_q[env.index.finger_q]))
 
 
 def joint_velocities(env: GraspEnv) -> torch.Tensor:
-    return env.cfg.obs.joint_vel_scale * torch.nan_to_num(env.t_joint_qd[env.i_finger_dof])
+    return env.cfg.obs.joint_vel_scale * torch.nan_to_num(env.view.joint_qd[env.index.finger_dof])
 
 
 def action_history(env: GraspEnv) -> torch.Tensor:
-    return env.action_hist.reshape(env.num_envs, -1)
+    return env.act.history.reshape(env.num_envs, -1)
 
 
 def episode_clock(env: GraspEnv) -> torch.Tensor:
@@ -65,7 +65,7 @@ def episode_clock(env: GraspEnv) -> torch.Tensor:
 
 
 def grasp_type(env: GraspEnv) -> torch.Tensor:
-    return _one_hot(len(GRASP_TYPES), env.torch_device)[env.grasp_id]
+    return _one_hot(len(GRASP_TYPES), env.torch_device)[env.grasp.type_id]
 
 
 def phase(env: GraspEnv) -> torch.Tensor:
@@ -81,11 +81,11 @@ def _one_hot(n: int, device: torch.device) -> torch.Tensor:
 
 def palm_offset(env: GraspEnv) -> torch.Tensor:
     """The palm command relative to the grasp pose (m, scaled)."""
-    return (env.root_cmd_pos - env.grasp_palm_pos) * env.cfg.obs.palm_offset_scale
+    return (env.palm.cmd_pos - env.grasp.palm_pos) * env.cfg.obs.palm_offset_scale
 
 
 def palm_orientation(env: GraspEnv) -> torch.Tensor:
-    return env.grasp_palm_quat
+    return env.grasp.palm_quat
 
 
 def rule_targets(env: GraspEnv) -> torch.Tensor:
@@ -95,7 +95,7 @@ def rule_targets(env: GraspEnv) -> torch.Tensor:
 
 def residual(env: GraspEnv) -> torch.Tensor:
     """The residual now applied, per joint."""
-    return env.residual
+    return env.act.residual
 
 
 def policy_terms(env: GraspEnv) -> list[tuple[str, Term]]:
@@ -122,12 +122,12 @@ def policy_terms(env: GraspEnv) -> list[tuple[str, Term]]:
 
 
 def object_offset(env: GraspEnv, obj: tuple[torch.Tensor, ...]) -> torch.Tensor:
-    palm = env.t_body_q[env.i_palm, :3]
+    palm = env.view.body_q[env.index.palm, :3]
     return (obj[0] - palm) * env.cfg.obs.object_offset_scale
 
 
 def link_distances(env: GraspEnv, obj: tuple[torch.Tensor, ...]) -> torch.Tensor:
-    links = env.t_body_q[env.i_link_bodies, :3]
+    links = env.view.body_q[env.index.link_bodies, :3]
     return torch.linalg.norm(links - obj[0][:, None], dim=-1) * env.cfg.obs.link_distance_scale
 
 
@@ -157,10 +157,10 @@ def privileged(env: GraspEnv) -> torch.Tensor:
             link_distances(env, obj),
             strain(env),
             sigma(env),
-            env.object_mass[:, None],
-            env.object_friction[:, None],
-            env.object_log_e[:, None] / o.log_youngs_per_unit,
-            torch.nan_to_num(env.t_pad_force_true).reshape(env.num_envs, -1) / o.pad_force_per_unit,
+            env.draw.object_mass[:, None],
+            env.draw.object_friction[:, None],
+            env.draw.object_log_e[:, None] / o.log_youngs_per_unit,
+            torch.nan_to_num(env.view.pad_force_true).reshape(env.num_envs, -1) / o.pad_force_per_unit,
         ],
         dim=-1,
     )
@@ -170,7 +170,7 @@ def episode_draw(env: GraspEnv) -> torch.Tensor:
     """(W, 4) this episode's domain randomisation: mass (rigid) or Young's modulus (soft) scale,
     friction scale, drive gain scale and action latency (steps). The manifest's nominal mass and
     friction above do not show what decides a marginal hold in this episode; these do."""
-    return env.episode_dynamics
+    return env.draw.dynamics
 
 
 def push_ahead(env: GraspEnv) -> torch.Tensor:
@@ -181,7 +181,7 @@ def push_ahead(env: GraspEnv) -> torch.Tensor:
     slot = tab.push_slot[script.row(env.episode_length_buf)]
     before = env.episode_length_buf < env.phase_start["disturb"]
     slot = torch.where(before, torch.zeros_like(slot), slot)
-    order = torch.cat([env.disturb_order, torch.full_like(env.disturb_order[:, :1], 6)], dim=1)
+    order = torch.cat([env.draw.disturb_order, torch.full_like(env.draw.disturb_order[:, :1], 6)], dim=1)
     return tab.push_dirs[order.gather(1, slot[:, None])[:, 0]]
 
 
@@ -252,17 +252,17 @@ def allocate(env: GraspEnv) -> None:
         pad_force_true=sensors.pad_force_true,
         lower=wp.from_torch(env.lower),
         upper=wp.from_torch(env.upper),
-        action_hist=floats(W, env.action_hist[0].numel()),
+        action_hist=floats(W, env.act.history[0].numel()),
         clock=wp.from_torch(tables["clock"]),
-        grasp_id=wp.from_torch(env.grasp_id),
+        grasp_id=wp.from_torch(env.grasp.type_id),
         palm_cmd=floats(W, dtype=wp.vec3),
-        grasp_palm_pos=wp.from_torch(env.grasp_palm_pos, dtype=wp.vec3),
-        grasp_palm_quat=wp.from_torch(env.grasp_palm_quat),
-        rule_target=floats(W, env.residual.shape[1]),
-        residual=floats(W, env.residual.shape[1]),
-        mass=wp.from_torch(env.object_mass),
-        friction=wp.from_torch(env.object_friction),
-        log_e=wp.from_torch(env.object_log_e),
+        grasp_palm_pos=wp.from_torch(env.grasp.palm_pos, dtype=wp.vec3),
+        grasp_palm_quat=wp.from_torch(env.grasp.palm_quat),
+        rule_target=floats(W, env.act.residual.shape[1]),
+        residual=floats(W, env.act.residual.shape[1]),
+        mass=wp.from_torch(env.draw.object_mass),
+        friction=wp.from_torch(env.draw.object_friction),
+        log_e=wp.from_torch(env.draw.object_log_e),
     )
     policy = floats(W, sizes["policy"].shape[1])
     privileged = floats(W, sizes["privileged"].shape[1] - privileged_episode(env).shape[1])
@@ -291,11 +291,11 @@ def compute_observations(env: GraspEnv) -> TensorDict:
     i = o.step_inputs
     # The inputs the environment rebinds each step, copied into the kernel's buffers.
     i["t"].copy_(env.episode_length_buf)
-    i["action_hist"].copy_(env.action_hist.reshape(env.num_envs, -1))
-    i["palm_cmd"].copy_(env.root_cmd_pos)
+    i["action_hist"].copy_(env.act.history.reshape(env.num_envs, -1))
+    i["palm_cmd"].copy_(env.palm.cmd_pos)
     if env.residual_base is not None:
         i["rule_target"].copy_(env.residual_base.target)
-        i["residual"].copy_(env.residual)
+        i["residual"].copy_(env.act.residual)
     o.launch()
     return TensorDict(
         {

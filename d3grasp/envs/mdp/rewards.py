@@ -140,18 +140,18 @@ def reference_reward_inputs(env: GraspEnv) -> dict[str, torch.Tensor]:
     """The reward kernels' per-step inputs from the state in torch (the gather kernel's reference),
     with the object's position and whether the state is finite."""
     obj_pos, _, obj_lin, obj_ang = env.object_state()
-    finite = torch.isfinite(obj_pos).all(-1) & torch.isfinite(env.t_joint_q[env.i_finger_q]).all(-1)
-    links = env.t_body_q[env.i_link_bodies, :3]
+    finite = torch.isfinite(obj_pos).all(-1) & torch.isfinite(env.view.joint_q[env.index.finger_q]).all(-1)
+    links = env.view.body_q[env.index.link_bodies, :3]
     height = links[..., 2] - env.cfg.sim.table_height - FINGER_HALF_THICKNESS
     sensors = env.sensors
     soft = sensors.strain_layout is not None
     # Rise above the resting height, counted from the lift phase on.
     lifting = env.phase_of(env.episode_length_buf) >= PHASES.index("lift")
-    rise = torch.nan_to_num(obj_pos[:, 2] - env.object_start[:, 2])
+    rise = torch.nan_to_num(obj_pos[:, 2] - env.draw.object_start[:, 2])
     return {
         "alive": finite.float(),
-        "joint_q": torch.nan_to_num(env.t_joint_q[env.i_finger_q]),
-        "joint_qd": torch.nan_to_num(env.t_joint_qd[env.i_finger_dof]),
+        "joint_q": torch.nan_to_num(env.view.joint_q[env.index.finger_q]),
+        "joint_qd": torch.nan_to_num(env.view.joint_qd[env.index.finger_dof]),
         "link_pos": torch.nan_to_num(links),
         "object_com": torch.nan_to_num(obj_pos),
         "obj_lin_vel": torch.nan_to_num(obj_lin),
@@ -177,4 +177,4 @@ def residual_penalty(env: GraspEnv) -> torch.Tensor:
     k = env.cfg.residual_penalty
     if k == 0.0 or env.residual_base is None:
         return torch.zeros(env.num_envs, device=env.torch_device)
-    return -k * env.residual.square().sum(-1)
+    return -k * env.act.residual.square().sum(-1)

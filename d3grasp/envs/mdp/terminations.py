@@ -129,7 +129,7 @@ def score_params(
 
 def allocate(env: GraspEnv) -> None:
     """``env.scoring`` (:class:`Scoring`), its launch captured as a graph. Reads the script, the
-    sensors' pad forces, the state's body poses, and ``env.object_start`` and ``env.disturb_order``
+    sensors' pad forces, the state's body poses, and ``env.draw.object_start`` and ``env.draw.disturb_order``
     (which resets write in place)."""
     W, dev, script, ph = env.num_envs, env.wp_device, env.script, env.cfg.phases
     prm = score_params(script, ph, env.dt, env.cfg.eval_mode, lift_on_pads=env.cfg.rule.stop_on == "touch")
@@ -150,8 +150,8 @@ def allocate(env: GraspEnv) -> None:
         pad_force_true=env.sensors.pad_force_true,
         body_q=env.physics.state_0.body_q,
         palm_body=wp.array(np.asarray(env.layout.palm_body, dtype=np.int32), dtype=wp.int32, device=dev),
-        object_start=wp.from_torch(env.object_start, dtype=wp.vec3),
-        disturb_order=wp.from_torch(env.disturb_order),
+        object_start=wp.from_torch(env.draw.object_start, dtype=wp.vec3),
+        disturb_order=wp.from_torch(env.draw.disturb_order),
     )
     state = sk.ScoreState.allocate(W, NUM_PADS, script.phase_start["lift"], dev)
     env.scoring = Scoring(
@@ -212,7 +212,7 @@ def episode_records(env: GraspEnv, finished: torch.Tensor) -> list[dict[str, Any
             ("max_rise", now.max_rise),
             ("max_push_motion", now.max_push_motion),
             ("episode_return", env.episode_return),
-            ("grasp_id", env.grasp_id),
+            ("grasp_id", env.grasp.type_id),
         )
     }
     for j, w in enumerate(w_all):
