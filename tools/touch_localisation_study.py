@@ -58,7 +58,7 @@ def collect(
         )
         W = env.num_envs
         zero = torch.zeros(W, env.num_actions)
-        g0 = env.phase_start["grasp"]
+        g0 = env.script.phase_start["grasp"]
         for r in range(rounds):
             if r:
                 env.reset_worlds(torch.arange(W))
@@ -69,7 +69,7 @@ def collect(
             done = np.zeros(W, dtype=bool)
             rec = {k: np.zeros((W,) + s) for k, s in (("q", (16,)), ("force", (11, 3)))}
             grasp = env.grasp.type_id.numpy().copy()
-            for _ in range(env.phase_start["lift"] + 2):
+            for _ in range(env.script.phase_start["lift"] + 2):
                 env.step(zero)
                 t = env.episode_length_buf.numpy()
                 force = env.view.pad_force_object.double().numpy()

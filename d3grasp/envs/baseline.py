@@ -184,9 +184,9 @@ class RuleBasedController:
         self.env = env
         # The environment's rule settings (GraspEnvConfig.rule) unless a config is given.
         self.cfg = cfg or getattr(getattr(env, "cfg", None), "rule", None) or BaselineConfig()
-        self.rest = rest_targets(env.lower, env.upper)
-        self.tables = RuleTables.make(self.cfg, env.upper)
-        self.state = RuleState.open(env.num_envs, env.lower)  # every world restarts at its first step
+        self.rest = rest_targets(env.joints.lower, env.joints.upper)
+        self.tables = RuleTables.make(self.cfg, env.joints.upper)
+        self.state = RuleState.open(env.num_envs, env.joints.lower)  # every world restarts at its first step
 
     @property
     def target(self) -> torch.Tensor:

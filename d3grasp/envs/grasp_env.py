@@ -37,7 +37,19 @@ from d3grasp.envs.config import ACTION_MODES, CLOSING_PRIORS, GRASP_SOURCES, PER
 from d3grasp.envs.grasp_file import changed_settings, environment_record, load_grasp_plan, without_prior
 from d3grasp.envs.mdp import actions as mdp_actions
 from d3grasp.envs.mdp import events, observations, rewards, terminations
-from d3grasp.envs.parts import Actions, Draw, Grasp, Indices, Nominal, PalmPath, Views
+from d3grasp.envs.parts import (
+    Actions,
+    Draw,
+    Grasp,
+    Indices,
+    Joints,
+    Kernel,
+    Nominal,
+    PalmPath,
+    Planning,
+    Record,
+    Views,
+)
 from d3grasp.envs.physics import Physics
 from d3grasp.envs.scene import (
     HAND_ANCHOR_QUAT,
@@ -71,27 +83,24 @@ class GraspEnv:
         self.rng = np.random.default_rng(cfg.seed)
         self.dt = 1.0 / cfg.sim.control_hz
         self.script = EpisodeScript(cfg.phases, cfg.sim.control_hz, cfg.eval_mode, cfg.obs.clock_period)
-        self.phase_start = self.script.phase_start
         self.max_episode_length = self.script.max_episode_length
 
         self.manifest_path, self.world_entries = select_world_objects(cfg.objects, self.num_envs, self.rng)
         # Grasps: the library's grasp file (the planner's measured grasps per object), if it has one
         # and the config asks for it; the planner itself sets a per-world override to score candidates.
-        self.grasp_plan = load_grasp_plan(self.manifest_path) if cfg.grasp_source == "file" else None
-        if self.grasp_plan:
+        self.planning = Planning(load_grasp_plan(self.manifest_path) if cfg.grasp_source == "file" else None)
+        if self.planning.plan:
             current = without_prior(environment_record(cfg.sim, cfg.rule))
-            _warn_changed_settings(self.grasp_plan, self.world_entries, current)
-        self.grasp_override: list | None = None
+            _warn_changed_settings(self.planning.plan, self.world_entries, current)
         self._build()
         self._allocate_buffers()
         # What the planner is told of each placed object: the true pose or the camera's estimate
-        # (vision/estimators.py); the episodes' localisation records (camera only).
-        self.loc_records: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        # (vision/estimators.py).
         scene = EstimatorScene(
             self.model, self.layout, [e.id for e in self.world_entries], cfg.camera, cfg.seed
         )
         name = estimator_name(cfg.perception, cfg.camera.register_footprint, cfg.pose_estimator)
-        self.pose_estimator = make_pose_estimator(name, scene)
+        self.planning.estimator = make_pose_estimator(name, scene)
         # Residual modes: the rule-based controller runs inside the env and the policy's actions are
         # offsets on its joint targets.
         self.residual_base = None
@@ -134,11 +143,9 @@ class GraspEnv:
         ph, se = self.physics, self.sensors
         self.view = Views.of(ph, se)  # torch views of device arrays (zero-copy)
         self.index = Indices.of(lay, tdev)
-        self.lower = torch.as_tensor(lay.finger_lower, dtype=f32, device=tdev)
-        self.upper = torch.as_tensor(lay.finger_upper, dtype=f32, device=tdev)
-        # The open hand: flexion at its lower limit, abduction centred (all zeros on DexHand13), the
-        # pose the rule-based closing starts from.
-        self.open_pose = rest_targets(self.lower, self.upper)
+        lower = torch.as_tensor(lay.finger_lower, dtype=f32, device=tdev)
+        upper = torch.as_tensor(lay.finger_upper, dtype=f32, device=tdev)
+        self.joints = Joints(lower, upper, rest_targets(lower, upper))
         self._allocate_episode_buffers()  # the scoring's state among them
         self._allocate_kernel_tables()
         rewards.allocate(self)
@@ -160,7 +167,7 @@ class GraspEnv:
 
         tab = self.script.tables(self.torch_device)
         # Kept here: a Warp array made from a torch tensor does not own its memory.
-        self.kernel_tables = {"phase": tab.phase.to(torch.int32), "clock": tab.clock.contiguous()}
+        tables = {"phase": tab.phase.to(torch.int32), "clock": tab.clock.contiguous()}
         wa = ws.WorldArrays()
         wa.joint_q, wa.joint_qd = ph.state_0.joint_q, ph.state_0.joint_qd
         wa.body_q, wa.body_qd = ph.state_0.body_q, ph.state_0.body_qd
@@ -174,9 +181,9 @@ class GraspEnv:
         wa.soft_eps, wa.soft_sigma = soft(strain, "object_eps"), soft(strain, "sigma")
         wa.soft_node_count = soft(se.strain_layout, "object_node_count")
         wa.lift_start = self.scoring.state.lift_start
-        wa.phase = wp.from_torch(self.kernel_tables["phase"])
+        wa.phase = wp.from_torch(tables["phase"])
         wa.last_row = self.script.max_episode_length + 1
-        self.world_arrays = wa
+        self.kernel = Kernel(tables, wa)
 
     def _allocate_episode_buffers(self) -> None:
         W, A, tdev, f32 = self.num_envs, self.num_actions, self.torch_device, torch.float32
@@ -190,16 +197,14 @@ class GraspEnv:
             A,
             self.cfg.obs.action_history,
             mdp_actions.synergy_matrix(tdev),
-            self.normalize_joints(self.open_pose),
+            self.normalize_joints(self.joints.open_pose),
             absolute=self.cfg.action_mode == "absolute",
         )
         self.draw = Draw.zeros(self.world_entries, tdev)
         self.grasp = Grasp.zeros(W, tdev)
         anchor = torch.as_tensor(quat_xyzw_to_matrix(HAND_ANCHOR_QUAT), dtype=f32, device=tdev)
         self.palm = PalmPath.of(self.physics, W, self.layout.root_q.shape[1], anchor)
-        self.max_strain = zeros(W)
-        self.episode_return = zeros(W)
-        self.object_soft = torch.as_tensor([e.kind == "deformable" for e in self.world_entries], device=tdev)
+        self.record = Record.zeros(W, tdev)
         self._obs: TensorDict | None = None
         # The scoring's state (lift start, s_grasp, s_lift, s_disturb, failure causes, ...) as torch
         # views of the scoring kernel's buffers: written in place only.
@@ -258,16 +263,16 @@ class GraspEnv:
     def open_pose_of(self, worlds: torch.Tensor) -> torch.Tensor:
         """(len(worlds), 16) the open hand of each world: the rule's rest pose with the abduction
         joints at the world's grasp pre-shape."""
-        pose = self.open_pose.expand(len(worlds), -1).clone()
+        pose = self.joints.open_pose.expand(len(worlds), -1).clone()
         pose[:, list(ABDUCTION_JOINTS)] = torch.minimum(
-            torch.maximum(self.grasp.preshape[worlds], self.lower[list(ABDUCTION_JOINTS)]),
-            self.upper[list(ABDUCTION_JOINTS)],
+            torch.maximum(self.grasp.preshape[worlds], self.joints.lower[list(ABDUCTION_JOINTS)]),
+            self.joints.upper[list(ABDUCTION_JOINTS)],
         )
         return pose
 
     def normalize_joints(self, q: torch.Tensor) -> torch.Tensor:
         """Finger joint positions -> [-1, 1] over their limits (the absolute action scale)."""
-        return 2.0 * (q - self.lower) / (self.upper - self.lower) - 1.0
+        return 2.0 * (q - self.joints.lower) / (self.joints.upper - self.joints.lower) - 1.0
 
     def object_state(self) -> tuple[torch.Tensor, ...]:
         """Every world's object position, orientation (xyzw), linear and angular velocity."""
@@ -355,7 +360,7 @@ class GraspEnv:
         # The reward's launches gather the state the scoring reads too (step, object, finiteness).
         rew = rewards.compute_rewards(self)
         done = terminations.score(self)
-        self.episode_return += rew
+        self.record.returns += rew
 
         # No step is a time-out for PPO: the episode's horizon is fixed and its clock observed, so
         # its end (the scored last push) is a true terminal. Reported as a time-out, rsl-rl added
@@ -398,7 +403,7 @@ class GraspEnv:
             "config": asdict(self.cfg),
             "objects": [e.id for e in self.world_entries],
             "max_episode_length": self.max_episode_length,
-            "phase_start": self.phase_start,
+            "phase_start": self.script.phase_start,
         }
 
     def close(self) -> None:

@@ -12,6 +12,10 @@ attribute  part              written by / read by
 ``grasp``  :class:`Grasp`    the episode's planned grasp (``mdp.events``; the palm path, the rule)
 ``palm``   :class:`PalmPath` the scripted palm path's endpoints and command (``mdp.events``, ``step``)
 ``act``    :class:`Actions`  the policy's actions, their history and what they set (``mdp.actions``)
+``joints`` :class:`Joints`   the finger joints' limits and the open hand
+``record`` :class:`Record`   what an episode's record adds: its return, its strain, its localisation
+``kernel`` :class:`Kernel`   what the task's Warp kernels read of every world (made once)
+``planning``:class:`Planning` the library's grasps, the planner's override and the pose estimator
 ========== ================= ==========================================================================
 """
 
@@ -125,6 +129,7 @@ class Draw:
     object_mass: torch.Tensor  # kg, the manifest's
     object_friction: torch.Tensor  # the material's coefficient
     object_log_e: torch.Tensor  # log10 of a soft object's Young's modulus (0 for rigid)
+    object_soft: torch.Tensor  # (W,) bool: a FEM soft body
 
     @classmethod
     def zeros(cls, entries: Sequence[Any], device: torch.device | str) -> Draw:
@@ -146,6 +151,7 @@ class Draw:
                 dtype=f32,
                 device=device,
             ),
+            object_soft=torch.as_tensor([e.kind == "deformable" for e in entries], device=device),
         )
 
 
@@ -248,3 +254,49 @@ class Actions:
             open_action=open_action,
             reset_action=open_action if absolute else torch.zeros(A, device=dev),
         )
+
+
+@dataclass
+class Joints:
+    """The finger joints' limits (rad) and the open hand: flexion at its lower limit, abduction
+    centred (all zeros on DexHand13), the pose the rule-based closing starts from."""
+
+    lower: torch.Tensor
+    upper: torch.Tensor
+    open_pose: torch.Tensor
+
+
+@dataclass
+class Record:
+    """What each world's episode record adds to the scoring's: its return so far, the soft object's
+    highest strain and the camera's localisation record (empty at the true pose)."""
+
+    returns: torch.Tensor
+    max_strain: torch.Tensor
+    localisation: list[dict[str, Any]]
+
+    @classmethod
+    def zeros(cls, num_worlds: int, device: torch.device | str) -> Record:
+        z = torch.zeros(num_worlds, device=device)
+        return cls(returns=z, max_strain=z.clone(), localisation=[{} for _ in range(num_worlds)])
+
+
+@dataclass
+class Kernel:
+    """What the task's Warp kernels (reward gather, observations) read of every world, made once:
+    ``world`` (``kernels.world_state.WorldArrays``) and the schedule's tables it is made from (kept
+    here: a Warp array made from a torch tensor does not own its memory)."""
+
+    tables: dict[str, torch.Tensor]
+    world: Any
+
+
+@dataclass
+class Planning:
+    """Where each episode's grasp comes from: the library's planned grasps (None: the geometric
+    rule), the planner's per-world override while it scores candidates, and the pose estimator
+    that tells the planner where the object is (d3grasp.vision.estimators)."""
+
+    plan: dict[str, Any] | None
+    override: list | None = None
+    estimator: Any = None

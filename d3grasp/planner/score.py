@@ -129,7 +129,7 @@ def _run_batch(
             **draws,
         )
     try:
-        env.grasp_override = [t.grasp for t in chunk]
+        env.planning.override = [t.grasp for t in chunk]
         env.reset_all()
         return first_episodes(env, make_controller(env, cfg.task, BASELINE, cfg.device))
     finally:

@@ -34,10 +34,10 @@ def measure(ids: list[str], noise: bool, seeds: int, batch: int, log=print) -> t
                 camera={"noise": noise},
                 objects={"ids": chunk},
             )
-            for w, rec in enumerate(env.loc_records):
+            for w, rec in enumerate(env.record.localisation):
                 records.append({"object": chunk[w], "kind": env.world_entries[w].kind, "seed": seed, **rec})
             # Render time of one world's 320x240 depth image (the BVH refit included).
-            perception = env.pose_estimator.perception
+            perception = env.planning.estimator.perception
             t0 = time.perf_counter()
             for w in range(len(chunk)):
                 perception.camera.render(env.state_0, [perception.pose], [w])

@@ -67,9 +67,9 @@ class TactileTrace:
         fig, axes = plt.subplots(4, 1, figsize=(8, 7), sharex=True)
         for ax, name, pads in zip(axes, FINGERS, FINGER_PADS, strict=True):
             for i, p in enumerate(PHASES):
-                start = env.phase_start[p] * env.dt
+                start = env.script.phase_start[p] * env.dt
                 end = (
-                    env.phase_start[PHASES[i + 1]] if i + 1 < len(PHASES) else env.max_episode_length
+                    env.script.phase_start[PHASES[i + 1]] if i + 1 < len(PHASES) else env.max_episode_length
                 ) * env.dt
                 if end > start:
                     ax.axvspan(start, end, color=PHASE_SHADES[p], lw=0)

@@ -195,7 +195,7 @@ def test_residual_is_low_pass_filtered():
         residual = action * (1.0 - (1.0 - b) ** k)
         torch.testing.assert_close(env.act.residual, residual, atol=1e-6, rtol=0)
         torch.testing.assert_close(env.get_observations()["policy"][:, -16:], residual, atol=1e-6, rtol=0)
-        desired = torch.clamp(rest + env.cfg.residual_scale * residual, env.lower, env.upper)
+        desired = torch.clamp(rest + env.cfg.residual_scale * residual, env.joints.lower, env.joints.upper)
         target = a_s * desired + (1.0 - a_s) * target
         torch.testing.assert_close(env.act.finger_target, target, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="residual_smoothing"):
@@ -386,7 +386,7 @@ def test_held_object_contact_forces_carry_its_weight():
         env = _box_env(sim__iterations=20)
     ctl = RuleBasedController(env)
     obs = env.get_observations()
-    for _ in range(env.phase_start["hold"] + 5):
+    for _ in range(env.script.phase_start["hold"] + 5):
         obs, *_ = env.step(ctl.act(obs))
     body = env.model.shape_body.numpy()
     obj = env.layout.object_body[0]

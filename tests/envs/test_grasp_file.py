@@ -126,7 +126,7 @@ def test_the_environment_places_the_stored_grasp(tmp_path: Path) -> None:
         np.testing.assert_allclose(local, [0.12 + 0.5 * along, -0.03, 0.04 + 0.5 * ex[2]], atol=1e-5)
         # grasp_source="rule" ignores the file.
         env2 = make_env(num_envs=1, objects={"manifest": str(manifest), "ids": (BOX,)}, grasp_source="rule")
-        assert env2.grasp_plan is None
+        assert env2.planning.plan is None
         env2.close()
     finally:
         env.close()
@@ -167,7 +167,7 @@ def test_grasps_planned_under_other_settings_are_used_with_a_warning(tmp_path: P
     with pytest.warns(UserWarning, match=r"box_01\).*sim\.iterations 8 -> 5.*plan-grasps"):
         env = make_env(num_envs=1, objects={"manifest": str(manifest), "ids": (BOX,)}, eval_mode=True)
     try:
-        assert env.grasp_plan[BOX].environment == planned  # still used: the warning says why to replan
+        assert env.planning.plan[BOX].environment == planned  # still used: the warning says why to replan
     finally:
         env.close()
 

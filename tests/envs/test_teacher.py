@@ -62,10 +62,12 @@ def test_the_correction_moves_the_planned_grasp_onto_the_grasp_at_the_true_pose(
     tell the two ends apart), is the stored grasp's palm in the object frame; the planned orientation
     turned by the correction's yaw is the stored orientation at the true yaw."""
     env = camera_env
-    plan = env.grasp_plan[BOX]
+    plan = env.planning.plan[BOX]
     for w in range(env.num_envs):
         corr = env.grasp.pose_correction[w].double().numpy()
-        assert env.loc_records[w]["loc_correction"] == pytest.approx(np.linalg.norm(corr[:3]), rel=1e-5)
+        assert env.record.localisation[w]["loc_correction"] == pytest.approx(
+            np.linalg.norm(corr[:3]), rel=1e-5
+        )
         obj_pos = env.draw.object_start[w].double().numpy()
         body_q = env.view.body_q[env.index.obj_body][w].double().numpy()
         r_obj = _quat_to_matrix(body_q[3:])
@@ -88,7 +90,7 @@ def test_the_correction_moves_the_planned_grasp_onto_the_grasp_at_the_true_pose(
         # registered to the box's footprint: across, that registration's recorded error; up, the box
         # fit's height error (its 3-D error less its horizontal one).
         centre = env.grasp.centre_correction[w].double().numpy()
-        rec = env.loc_records[w]
+        rec = env.record.localisation[w]
         assert np.linalg.norm(centre[:2]) == pytest.approx(rec["loc_registered_xy"], rel=1e-4, abs=1e-6)
         up = math.sqrt(max(rec["loc_error"] ** 2 - rec["loc_error_xy"] ** 2, 0.0))
         assert abs(centre[2]) == pytest.approx(up, rel=1e-3, abs=1e-6)
@@ -125,7 +127,7 @@ def test_the_footprint_registered_to_is_the_boxs_own(camera_env):
     the manifest's extents round the body origin."""
     env = camera_env
     ex = np.asarray(env.world_entries[0].extents[:2])
-    fp = env.pose_estimator.footprints[0]
+    fp = env.planning.estimator.footprints[0]
     np.testing.assert_allclose(np.ptp(fp.outline, axis=0), ex, atol=2.0 * fp.cell)
     np.testing.assert_allclose(fp.centroid, 0.0, atol=fp.cell)
     assert fp.outside.min() == 0.0 and fp.outside.max() >= 2.0 * fp.cell
@@ -136,7 +138,7 @@ def test_plan_yaw_offset_turns_the_planned_grasp_about_the_object():
     in the object's frame turned by a half turn is the stored grasp's palm."""
     env = _env(None, plan_yaw_offset=math.pi)
     try:
-        plan = env.grasp_plan[BOX]
+        plan = env.planning.plan[BOX]
         for w in range(env.num_envs):
             obj_pos = env.draw.object_start[w].double().numpy()
             r_obj = _quat_to_matrix(env.view.body_q[env.index.obj_body][w].double().numpy()[3:])

@@ -32,7 +32,6 @@ def _env(num_worlds: int, lift_on_touch: bool = True) -> SimpleNamespace:
         cfg=cfg,
         script=script,
         dt=1.0 / cfg.sim.control_hz,
-        phase_start=script.phase_start,
         max_episode_length=script.max_episode_length,
         num_envs=W,
         wp_device=dev,
@@ -54,9 +53,9 @@ def _env(num_worlds: int, lift_on_touch: bool = True) -> SimpleNamespace:
             SimpleNamespace(id=f"o{w}", kind="rigid", family="box", size_bin="small") for w in range(W)
         ],
         grasp=SimpleNamespace(type_id=torch.zeros(W, dtype=torch.long)),
-        max_strain=torch.zeros(W),
-        episode_return=torch.zeros(W),
-        loc_records=[{} for _ in range(W)],
+        record=SimpleNamespace(
+            max_strain=torch.zeros(W), returns=torch.zeros(W), localisation=[{} for _ in range(W)]
+        ),
     )
     terminations.allocate(env)
     return env
@@ -98,7 +97,7 @@ def _rise_profile(env, t: int, lift_start: int) -> float:
 
 def test_failure_reasons_from_hand_made_episodes() -> None:
     env = _env(6, lift_on_touch=False)
-    ps = env.phase_start
+    ps = env.script.phase_start
     lift0, hold0, dist0 = ps["lift"], ps["hold"], ps["disturb"]
     push = env.script.steps_per_push
     palm_up = lambda t: _rise_profile(env, t, lift0)  # noqa: E731
@@ -151,7 +150,7 @@ def test_failure_reasons_from_hand_made_episodes() -> None:
 def test_lift_starts_once_the_pads_show_a_grasp_for_the_settle_time() -> None:
     env = _env(2)
     settle = round(env.cfg.phases.grasp_settle / env.dt)
-    touch_at = env.phase_start["grasp"] + 10
+    touch_at = env.script.phase_start["grasp"] + 10
 
     def object_pads(t: int) -> torch.Tensor:
         f = torch.zeros(2, NUM_PADS, 3)
@@ -164,7 +163,7 @@ def test_lift_starts_once_the_pads_show_a_grasp_for_the_settle_time() -> None:
     _run(env, zero, zero, object_pads)
     assert int(env.scoring.now.lift_start[0]) == touch_at + settle  # the step after `settle` steps of touch
     assert (
-        int(env.scoring.now.lift_start[1]) == env.phase_start["lift"]
+        int(env.scoring.now.lift_start[1]) == env.script.phase_start["lift"]
     )  # no grasp: the grasp phase's time out
     # The phase follows each world's own lift start.
     t = torch.tensor([touch_at + settle, touch_at + settle])
@@ -197,7 +196,7 @@ def test_failure_codes_name_the_failures() -> None:
 
 def test_records_name_the_pads_touching_at_the_lift_start_and_end() -> None:
     env = _env(1, lift_on_touch=False)
-    lift0, hold0 = env.phase_start["lift"], env.phase_start["hold"]
+    lift0, hold0 = env.script.phase_start["lift"], env.script.phase_start["hold"]
     thumb, index_tip, middle_tip = THUMB_PADS[-1], OPPOSING_PADS[2], OPPOSING_PADS[5]
 
     def object_pads(t: int) -> torch.Tensor:
@@ -226,7 +225,7 @@ def test_success_bounds_just_inside_and_just_outside() -> None:
     flips one of these four worlds."""
     env = _env(4, lift_on_touch=False)
     assert env.cfg.phases.lift_height == LIFT == 0.1
-    ps = env.phase_start
+    ps = env.script.phase_start
     lift0, dist0 = ps["lift"], ps["disturb"]
     push = env.script.steps_per_push
     palm_up = lambda t: _rise_profile(env, t, lift0)  # noqa: E731

@@ -818,7 +818,7 @@ def test_shipped_policy_fits_its_task_and_its_exports_agree() -> None:
         NumpyLstmPolicy(data["actor_state_dict"]), exported / "policy.pt", exported / "policy.onnx"
     )
     obs = env.get_observations()
-    for _ in range(env.phase_start["lift"] + 5):  # into the lift, where the policy squeezes
+    for _ in range(env.script.phase_start["lift"] + 5):  # into the lift, where the policy squeezes
         want = exports.step(obs["policy"].numpy().astype(np.float32))
         obs, *_ = env.step(torch.from_numpy(want.astype(np.float32)))
     assert np.abs(want).max() > 0.05  # a trained policy, not the zero residual of a fresh one

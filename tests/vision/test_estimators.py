@@ -45,12 +45,12 @@ def test_a_new_estimator_is_a_registration(monkeypatch: pytest.MonkeyPatch) -> N
     )
     try:
         (estimator,) = made
-        assert env.pose_estimator is estimator
+        assert env.planning.estimator is estimator
         placed = estimator.seen[-2:]
         assert [p.world for p in placed] == [0, 1]
         for p in placed:
             np.testing.assert_allclose(p.pos, env.draw.object_start[p.world].numpy(), atol=1e-6)
-            rec = env.loc_records[p.world]
+            rec = env.record.localisation[p.world]
             # The environment scores the estimate against the truth: the centre was told 1 cm off.
             assert rec["perception"] == "shifted"
             assert rec["loc_correction_centre"] == pytest.approx(0.01, abs=1e-6)

@@ -236,7 +236,7 @@ def test_env_camera_perception_records_localisation_error():
         objects={"ids": ("box_00", "sponge_cube_s")},
         phases={"approach": 0.05, "grasp": 0.05, "lift": 0.05, "hold": 0.05, "disturb_per_direction": 0.02},
     )
-    for w, rec in enumerate(env.loc_records):
+    for w, rec in enumerate(env.record.localisation):
         assert rec["perception"] == "camera" and rec["loc_ok"]
         assert rec["loc_error"] < 2.0 * CENTRE_BOUND, env.world_entries[w].id
     episodes = []

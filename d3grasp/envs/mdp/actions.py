@@ -106,9 +106,9 @@ def apply_actions(env: GraspEnv, actions: torch.Tensor) -> None:
         if PHASES.index(cfg.residual_start) > 0:  # from the first phase on there is nothing to wait for
             env.act.residual = env.act.residual * fingers_acting(env)[:, None]
         desired = env.residual_base.target + cfg.residual_scale * env.act.residual
-        desired = torch.minimum(torch.maximum(desired, env.lower), env.upper)
+        desired = torch.minimum(torch.maximum(desired, env.joints.lower), env.joints.upper)
     else:
-        desired = env.lower + 0.5 * (applied + 1.0) * (env.upper - env.lower)
+        desired = env.joints.lower + 0.5 * (applied + 1.0) * (env.joints.upper - env.joints.lower)
     a = cfg.action_smoothing
     env.act.finger_target = a * desired + (1.0 - a) * env.act.finger_target
     env.view.target[env.index.finger_q] = env.act.finger_target

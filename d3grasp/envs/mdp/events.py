@@ -106,13 +106,13 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
     placed = lay.rest_particle_q[p0 : p0 + n] @ rot_z(yaw).T + obj_pos if soft else None
     # The planner sees the estimator's pose (vision/estimators.py); the truth only scores its error.
     particles = (p0, placed) if soft else None
-    seen = env.pose_estimator.estimate(
+    seen = env.planning.estimator.estimate(
         env.state_0, PlacedObject(w, int(lay.object_body[w]), obj_pos, qz, yaw, ex, particles)
     )
     plan_pos, plan_yaw, plan_ex = seen.pos, seen.yaw, seen.extents
     estimated, registered = seen.estimated, seen.registered
     if estimated:
-        env.loc_records[w] = seen.record
+        env.record.localisation[w] = seen.record
     pose, used_yaw, place = _plan_grasp(
         env,
         w,
@@ -131,7 +131,7 @@ def _place_object_and_hand(env: GraspEnv, w: int, arrays: ModelArrays) -> None:
         centre = np.asarray(obj_pos, dtype=np.float64) - np.asarray(plan_pos, dtype=np.float64)
         env.grasp.pose_correction[w] = torch.as_tensor(corr, dtype=torch.float32)
         env.grasp.centre_correction[w] = torch.as_tensor(centre, dtype=torch.float32)
-        env.loc_records[w].update(
+        env.record.localisation[w].update(
             loc_correction=float(np.linalg.norm(corr[:3])),
             loc_correction_yaw=float(abs(corr[3])),
             loc_correction_centre=float(np.linalg.norm(centre)),
@@ -159,16 +159,16 @@ def _plan_grasp(
 ) -> tuple[GraspPose, float, Callable[[np.ndarray, float, np.ndarray], GraspPose]]:
     """World ``w``'s grasp, the object yaw it was placed at, and the chosen grasp as a placer (the
     same grasp at another object pose): the planner's override for this world
-    (``env.grasp_override``, as the grasp planner scores its candidates), else the object's stored
-    grasp of the library's grasp file (``env.grasp_plan``: the best measured of the allowed types, or
+    (``env.planning.override``, as the grasp planner scores its candidates), else the object's stored
+    grasp of the library's grasp file (``env.planning.plan``: the best measured of the allowed types, or
     a random allowed type in ``grasp_mode="sample"``), else the geometric rule on the object's size."""
     allowed = tuple(env.cfg.grasp_types)
-    override = env.grasp_override[w] if env.grasp_override is not None else None
+    override = env.planning.override[w] if env.planning.override is not None else None
     place: Callable[[np.ndarray, float, np.ndarray], GraspPose]
     if override is not None:
         place = lambda p, y, ex: override.place(p, y)  # noqa: E731
         return place(pos, yaw, extents), yaw, place
-    stored = env.grasp_plan.get(object_id) if env.grasp_plan is not None else None
+    stored = env.planning.plan.get(object_id) if env.planning.plan is not None else None
     name = stored.best(allowed) if stored else None
     if name is not None:
         if env.cfg.grasp_mode == "sample":
@@ -302,12 +302,12 @@ def _reset_bookkeeping(env: GraspEnv, env_ids: torch.Tensor) -> None:
     now.s_grasp[env_ids] = False
     now.pads_at_lift[env_ids] = False
     now.pads_at_hold[env_ids] = False
-    now.lift_start[env_ids] = env.phase_start["lift"]
+    now.lift_start[env_ids] = env.script.phase_start["lift"]
     now.touch_steps[env_ids] = 0
     now.max_rise[env_ids] = 0.0
     now.max_push_motion[env_ids] = 0.0
     now.lift_ok[env_ids] = True
     now.disturb_ok[env_ids] = True
     now.failure[env_ids] = 0
-    env.max_strain[env_ids] = 0.0
-    env.episode_return[env_ids] = 0.0
+    env.record.max_strain[env_ids] = 0.0
+    env.record.returns[env_ids] = 0.0

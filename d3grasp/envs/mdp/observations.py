@@ -179,7 +179,7 @@ def push_ahead(env: GraspEnv) -> torch.Tensor:
     script = env.script
     tab = script.tables(env.torch_device)
     slot = tab.push_slot[script.row(env.episode_length_buf)]
-    before = env.episode_length_buf < env.phase_start["disturb"]
+    before = env.episode_length_buf < env.script.phase_start["disturb"]
     slot = torch.where(before, torch.zeros_like(slot), slot)
     order = torch.cat([env.draw.disturb_order, torch.full_like(env.draw.disturb_order[:, :1], 6)], dim=1)
     return tab.push_dirs[order.gather(1, slot[:, None])[:, 0]]
@@ -240,7 +240,7 @@ def allocate(env: GraspEnv) -> None:
     prm.residual_terms = int(env.residual_base is not None)
     prm.grasp_phase, prm.lift_phase = PHASES.index("grasp"), PHASES.index("lift")
     prm.num_grasp_types, prm.num_phases = len(GRASP_TYPES), len(PHASES)
-    sensors, tables = env.sensors, env.kernel_tables
+    sensors, tables = env.sensors, env.kernel.tables
 
     def floats(*shape: int, dtype=float) -> wp.array:
         return wp.zeros(shape, dtype=dtype, device=dev)
@@ -250,8 +250,8 @@ def allocate(env: GraspEnv) -> None:
         pad_force=sensors.pad_force,
         pad_contact=sensors.pad_contact,
         pad_force_true=sensors.pad_force_true,
-        lower=wp.from_torch(env.lower),
-        upper=wp.from_torch(env.upper),
+        lower=wp.from_torch(env.joints.lower),
+        upper=wp.from_torch(env.joints.upper),
         action_hist=floats(W, env.act.history[0].numel()),
         clock=wp.from_torch(tables["clock"]),
         grasp_id=wp.from_torch(env.grasp.type_id),
@@ -277,7 +277,7 @@ def allocate(env: GraspEnv) -> None:
             for n in ("t", "action_hist", "palm_cmd", "rule_target", "residual")
         },
         launch=Replayed(
-            lambda: ok.compute_observations(prm, env.world_arrays, inputs, policy, privileged),
+            lambda: ok.compute_observations(prm, env.kernel.world, inputs, policy, privileged),
             [ok],
             dev,
             env.cfg.sim.use_graph,

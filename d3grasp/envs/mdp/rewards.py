@@ -112,7 +112,7 @@ def _launches(
     si = env.scoring.inputs
     ws.gather_reward_inputs(
         prm,
-        env.world_arrays,
+        env.kernel.world,
         si.t,  # the step count and the objects' start positions: the scoring's inputs, shared
         si.object_start,
         inputs,

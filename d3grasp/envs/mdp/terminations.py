@@ -182,7 +182,9 @@ def score(env: GraspEnv) -> torch.Tensor:
     env.scoring.launch()
     sensors = env.sensors
     if sensors.strain_layout is not None:
-        env.max_strain = torch.maximum(env.max_strain, sensors.soft_scalar(sensors.strain_buf.object_eps))
+        env.record.max_strain = torch.maximum(
+            env.record.max_strain, sensors.soft_scalar(sensors.strain_buf.object_eps)
+        )
     return env.scoring.now.done.clone()
 
 
@@ -208,10 +210,10 @@ def episode_records(env: GraspEnv, finished: torch.Tensor) -> list[dict[str, Any
             ("failure", now.failure),
             ("pads_at_lift", now.pads_at_lift),
             ("pads_at_hold", now.pads_at_hold),
-            ("max_strain", env.max_strain),
+            ("max_strain", env.record.max_strain),
             ("max_rise", now.max_rise),
             ("max_push_motion", now.max_push_motion),
-            ("episode_return", env.episode_return),
+            ("episode_return", env.record.returns),
             ("grasp_id", env.grasp.type_id),
         )
     }
@@ -244,7 +246,7 @@ def episode_records(env: GraspEnv, finished: torch.Tensor) -> list[dict[str, Any
                 "max_push_motion": float(host["max_push_motion"][j]),
                 "return": float(host["episode_return"][j]),
                 "length": t,
-                **env.loc_records[w],  # camera perception: the episode's localisation error
+                **env.record.localisation[w],  # camera perception: the episode's localisation error
             }
         )
     return records
