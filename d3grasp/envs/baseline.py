@@ -175,7 +175,7 @@ class RuleBasedController:
 
     ``env`` is any object with the environment's readings (``view.pad_force_object``, ``view.joint_q``
     with ``index.finger_q``, ``episode_length_buf``, ``phase_of``, ``grasp.type_id``, ``dt``, joint limits
-    ``lower`` / ``upper``, ``normalize_joints``; ``object_soft`` if it has soft objects); in the
+    ``joints.lower`` / ``joints.upper``, ``normalize_joints``, ``draw.object_soft``); in the
     residual action modes the environment runs the rule itself (``env.residual_base``) and this
     controller's actions are the zero residual.
     """
@@ -220,6 +220,6 @@ class RuleBasedController:
             closing,
             env.grasp.type_id,
             env.dt,
-            getattr(env, "object_soft", None),
+            env.draw.object_soft,
         )
         return env.normalize_joints(target)
