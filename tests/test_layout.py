@@ -158,3 +158,17 @@ def test_the_mapped_folders_resolve_through_the_install() -> None:
     origins = [importlib.util.find_spec(n).origin for n in names]
     assert [Path(o).parent for o in origins] == [REPO / "kernels", REPO / "train", REPO / "assets_usd"]
     assert importlib.util.find_spec("d3grasp.tools") is None  # a root folder not mapped stays outside
+
+
+def test_the_checkout_without_the_mapping_says_what_to_run() -> None:
+    """The checkout's d3grasp/ imported with no install's mapping (a bare interpreter with only the
+    checkout on its path: `python -m d3grasp...` in the checkout after a non-editable install) stops
+    in one line naming the editable install, not at the first kernel import."""
+    import subprocess
+    import sys
+
+    code = "import sys; sys.path.insert(0, sys.argv[1]); import d3grasp"
+    res = subprocess.run([sys.executable, "-S", "-c", code, str(REPO)], capture_output=True, text=True)
+    assert res.returncode != 0
+    assert res.stderr.strip().splitlines()[-1].startswith("ImportError: ")
+    assert "pip install -e ." in res.stderr
