@@ -440,3 +440,29 @@ def test_contact_reward_counts_the_pads_touch_of_the_object_only():
         set_pads(env.sensors.pad_force_object, env.sensors.pad_contact_object, object_force)
         rewards.compute_rewards(env)
         assert float(env.reward.terms[0, contact]) == pytest.approx(expected, rel=1e-5, abs=1e-6)
+
+
+def test_the_rule_squeezes_soft_worlds_with_the_soft_squeeze(mixed_env, monkeypatch):
+    """The rule-based controller hands rule_step which worlds hold a soft object (world 0 the box,
+    world 1 the sponge), so the sponge closes with rule.squeeze_deformable: a controller that lost the
+    flag closed soft objects with the rigid squeeze and the evaluation's soft holds fell (2026-12-08)."""
+    import d3grasp.envs.baseline as baseline
+
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append(args[8])
+        return real(*args, **kwargs)
+
+    real = baseline.rule_step
+    monkeypatch.setattr(baseline, "rule_step", spy)
+    env = mixed_env
+    # In the residual modes the environment runs the rule; the controller runs it itself without one.
+    residual_base, env.residual_base = env.residual_base, None
+    try:
+        RuleBasedController(env).act(env.get_observations())
+    finally:
+        env.residual_base = residual_base
+    assert [bool(x) for x in seen[0]] == [False, True]
+    squeeze = baseline.squeeze_per_world(env.cfg.rule, seen[0]).flatten().tolist()
+    assert squeeze == pytest.approx([env.cfg.rule.squeeze, env.cfg.rule.squeeze_deformable])
