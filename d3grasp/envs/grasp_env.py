@@ -186,12 +186,8 @@ class GraspEnv:
         self.kernel = Kernel(tables, wa)
 
     def _allocate_episode_buffers(self) -> None:
-        W, A, tdev, f32 = self.num_envs, self.num_actions, self.torch_device, torch.float32
-
-        def zeros(*shape: int, dtype: torch.dtype = f32) -> torch.Tensor:
-            return torch.zeros(*shape, dtype=dtype, device=tdev)
-
-        self.episode_length_buf = zeros(W, dtype=torch.long)
+        W, A, tdev = self.num_envs, self.num_actions, self.torch_device
+        self.episode_length_buf = torch.zeros(W, dtype=torch.long, device=tdev)
         self.act = Actions.zeros(
             W,
             A,
@@ -202,7 +198,7 @@ class GraspEnv:
         )
         self.draw = Draw.zeros(self.world_entries, tdev)
         self.grasp = Grasp.zeros(W, tdev)
-        anchor = torch.as_tensor(quat_xyzw_to_matrix(HAND_ANCHOR_QUAT), dtype=f32, device=tdev)
+        anchor = torch.as_tensor(quat_xyzw_to_matrix(HAND_ANCHOR_QUAT), dtype=torch.float32, device=tdev)
         self.palm = PalmPath.of(self.physics, W, self.layout.root_q.shape[1], anchor)
         self.record = Record.zeros(W, tdev)
         self._obs: TensorDict | None = None

@@ -158,10 +158,13 @@ def _differing(old: Any, new: Any, prefix: str = "") -> list[str]:
     return [d for k in keys for d in _differing(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else k)]
 
 
-def _units(manifest: Path, entries: Sequence[Any], cfg: PlannerConfig) -> list[list[dict[str, Any]]]:
-    """The selection's objects in fixed groups of ``cfg.objects_per_unit``, each object a row of what
-    its trials need (id, kind, extents, collision pieces, hull)."""
-    from d3grasp.authoring.manifest import read_manifest, resolve_asset_path
+def _units(
+    manifest: Path, entries: Sequence[Any], order: dict[str, int], cfg: PlannerConfig
+) -> list[list[dict[str, Any]]]:
+    """The selection's objects in fixed groups of ``cfg.objects_per_unit``, in library ``order`` (asset
+    id -> its place in the manifest), each object a row of what its trials need (id, kind, extents,
+    collision pieces, hull)."""
+    from d3grasp.authoring.manifest import resolve_asset_path
     from d3grasp.authoring.precision import stable_json
 
     # Fixed groups of the whole selection in library order (rigid objects first: a FEM step costs
@@ -170,7 +173,6 @@ def _units(manifest: Path, entries: Sequence[Any], cfg: PlannerConfig) -> list[l
     # however many workers run them: a group's objects share their batches, so the same groups give
     # the same plan for a seed on any number of cores and after any interruption. A group with an
     # object left to plan runs whole.
-    order = {e.id: k for k, e in enumerate(read_manifest(manifest))}
     units = []
     for kind in ("rigid", "deformable"):
         mine = sorted((e for e in entries if e.kind == kind), key=lambda e: order[e.id])
@@ -212,12 +214,11 @@ def plan_grasps(
     from tqdm import tqdm
 
     from d3grasp.authoring.manifest import read_manifest, resolve_asset_path
-    from d3grasp.authoring.precision import stable_json
-    from d3grasp.files import atomic_write_text
 
     cfg = cfg or PlannerConfig()
     manifest = Path(manifest).resolve()
     entries = read_manifest(manifest)
+    order = {e.id: k for k, e in enumerate(entries)}  # the library's order, whatever is selected
     if ids:
         known = {e.id for e in entries}
         missing = [i for i in ids if i not in known]
@@ -262,8 +263,7 @@ def plan_grasps(
             and rec.get("planner", settings) == settings
         )
 
-    units = _units(manifest, entries, cfg)
-    order = {e.id: k for k, e in enumerate(read_manifest(manifest))}
+    units = _units(manifest, entries, order, cfg)
     if earlier is not None:
         # A plan of other settings: a group whose trials those settings ran as these would (e.g. no
         # composite among its objects when the settings differ by the pieces' candidates) is kept.
@@ -285,9 +285,7 @@ def plan_grasps(
     def save(result: dict[str, dict[str, Any]]) -> None:
         for oid, rec in result.items():
             data["objects"][oid] = {"asset_sha256": sha[oid], **rec}
-        data["objects"] = dict(sorted(data["objects"].items(), key=lambda kv: order.get(kv[0], math.inf)))
-        # Numbers at the authoring precision (9 digits): the same file on any machine for the same plan.
-        atomic_write_text(path, json.dumps(stable_json(data), indent=1) + "\n")
+        _write_plan(path, data, order)
 
     with tqdm(
         total=len(todo), unit="obj", disable=not progress, dynamic_ncols=True, desc="plan-grasps"
@@ -308,8 +306,6 @@ def adopt_plans(manifest: str | Path, source: str | Path, ids: Sequence[str]) ->
     others were planned with, and a later ``plan_grasps`` under those replans these). Only records
     measured on the library's current asset files are taken; returns the grasp file's path."""
     from d3grasp.authoring.manifest import read_manifest, resolve_asset_path
-    from d3grasp.authoring.precision import stable_json
-    from d3grasp.files import atomic_write_text
 
     manifest = Path(manifest).resolve()
     path = grasp_file_path(manifest)
@@ -325,7 +321,16 @@ def adopt_plans(manifest: str | Path, source: str | Path, ids: Sequence[str]) ->
         if rec.get("asset_sha256") != asset_sha256(resolve_asset_path(manifest, entries[oid])):
             raise ValueError(f"{source}: the plan of '{oid}' was measured on another asset file")
         data["objects"][oid] = {**rec, "planner": rec.get("planner", other.get("planner"))}
-    order = {oid: k for k, oid in enumerate(entries)}
+    _write_plan(path, data, {oid: k for k, oid in enumerate(entries)})
+    return path
+
+
+def _write_plan(path: Path, data: dict[str, Any], order: dict[str, int]) -> None:
+    """Write a grasp file atomically, its objects in library ``order`` (asset id -> place; others
+    last) and its numbers at the authoring precision (9 digits): the same file on any machine for
+    the same plan."""
+    from d3grasp.authoring.precision import stable_json
+    from d3grasp.files import atomic_write_text
+
     data["objects"] = dict(sorted(data["objects"].items(), key=lambda kv: order.get(kv[0], math.inf)))
     atomic_write_text(path, json.dumps(stable_json(data), indent=1) + "\n")
-    return path

@@ -3,6 +3,7 @@ hand, scored by ``d3grasp.envs.mdp.terminations`` step by step as the environmen
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from types import SimpleNamespace
 
 import numpy as np
@@ -95,6 +96,17 @@ def _rise_profile(env, t: int, lift_start: int) -> float:
     return LIFT * (0.5 - 0.5 * np.cos(np.pi * s))
 
 
+def _lifting_palm(num_worlds: int, palm_up: Callable[[int], float]) -> Callable[[int], torch.Tensor]:
+    """Every world's palm 5 cm above the table, rising by ``palm_up(t)``: ``palm_path`` of :func:`_run`."""
+
+    def palm_path(t: int) -> torch.Tensor:
+        p = torch.zeros(num_worlds, 3)
+        p[:, 2] = 0.05 + palm_up(t)
+        return p
+
+    return palm_path
+
+
 def test_failure_reasons_from_hand_made_episodes() -> None:
     env = _env(6, lift_on_touch=False)
     ps = env.script.phase_start
@@ -114,10 +126,7 @@ def test_failure_reasons_from_hand_made_episodes() -> None:
             pos[4, 1] = 0.03
         return pos
 
-    def palm_path(t: int) -> torch.Tensor:
-        p = torch.zeros(6, 3)
-        p[:, 2] = 0.05 + palm_up(t)
-        return p
+    palm_path = _lifting_palm(6, palm_up)
 
     grasped = _grasp_forces()
 
@@ -238,10 +247,7 @@ def test_success_bounds_just_inside_and_just_outside() -> None:
             pos[2, 0], pos[3, 0] = 0.019, 0.021  # along +x, the first push's direction
         return pos
 
-    def palm_path(t: int) -> torch.Tensor:
-        p = torch.zeros(4, 3)
-        p[:, 2] = 0.05 + palm_up(t)
-        return p
+    palm_path = _lifting_palm(4, palm_up)
 
     grasped = _grasp_forces()
     records = _run(env, object_path, palm_path, lambda t: grasped.expand(4, NUM_PADS, 3).clone())

@@ -272,10 +272,7 @@ def allocate(env: GraspEnv) -> None:
         policy=policy,
         privileged=privileged,
         out={"policy": wp_view(policy), "privileged": wp_view(privileged)},
-        step_inputs={
-            n: wp_view(getattr(inputs, n))
-            for n in ("t", "action_hist", "palm_cmd", "rule_target", "residual")
-        },
+        step_inputs={n: wp_view(getattr(inputs, n)) for n in _STEP_INPUTS},
         launch=Replayed(
             lambda: ok.compute_observations(prm, env.kernel.world, inputs, policy, privileged),
             [ok],
