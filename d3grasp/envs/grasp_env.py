@@ -60,7 +60,6 @@ from d3grasp.envs.scene import (
 from d3grasp.envs.script import EpisodeScript
 from d3grasp.envs.sensors import Sensors
 from d3grasp.geometry import quat_xyzw_to_matrix
-from d3grasp.kernels import rewards as rk
 from d3grasp.kernels import world_state as ws
 from d3grasp.vision.estimators import EstimatorScene, estimator_name, make_pose_estimator
 from d3grasp.vocabulary import GRASP_TYPES, METRICS, PHASES
@@ -361,28 +360,12 @@ class GraspEnv:
         # No step is a time-out for PPO: the episode's horizon is fixed and its clock observed, so
         # its end (the scored last push) is a true terminal. Reported as a time-out, rsl-rl added
         # gamma * V(s) to the last reward, a bootstrap past the outcome that had just been scored.
-        extras: dict[str, Any] = {"time_outs": torch.zeros_like(done), "log": {}}
-        # One mean over the worlds for all terms (a mean per term is a reduction launch each).
-        for name, mean in zip(rk.TERM_NAMES, self.reward.terms.mean(0).unbind(), strict=True):
-            extras["log"][f"Reward/{name}"] = mean
-        if self.cfg.residual_penalty:
-            extras["log"]["Reward/residual"] = self.reward.residual_term.mean()
+        extras: dict[str, Any] = {"time_outs": torch.zeros_like(done), "log": rewards.reward_log(self)}
         finished = torch.nonzero(done).flatten()
         if len(finished):
             episodes = terminations.episode_records(self, finished)
             extras["episodes"] = episodes
-            if self.cfg.success_bonus_lift or self.cfg.success_bonus_disturb:
-                bonus = torch.as_tensor(
-                    [
-                        self.cfg.success_bonus_lift * ep["s_lift"]
-                        + self.cfg.success_bonus_disturb * ep["s_disturb"]
-                        for ep in episodes
-                    ],
-                    dtype=rew.dtype,
-                    device=rew.device,
-                )
-                rew[finished] += bonus
-                extras["log"]["Reward/success_bonus"] = float(bonus.sum()) / self.num_envs
+            extras["log"].update(rewards.pay_episode_terms(self, rew, finished, episodes))
             for key in METRICS:
                 extras["log"][f"Metrics/{key}"] = float(np.mean([ep[key] for ep in episodes]))
             self.reset_worlds(finished)

@@ -1,5 +1,7 @@
 """The reward: the paper's terms plus the lift term, computed by the Warp kernels of
-``d3grasp.kernels.rewards`` for all worlds at once; the weights are ``GraspEnvConfig.rewards``.
+``d3grasp.kernels.rewards`` for all worlds at once (their weights: ``GraspEnvConfig.rewards``), and
+the terms computed in torch, declared once in :data:`TORCH_TERMS` (the residual penalty each step,
+the success bonus at an episode's end).
 
 Their per-step inputs are gathered from the state by ``d3grasp.kernels.world_state`` (which also
 hands the scoring the object's position and whether the state is finite), in the same graph as the
@@ -7,8 +9,9 @@ reward kernels; :func:`reference_reward_inputs` is that gather in torch, the ker
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 import warp as wp
@@ -22,6 +25,7 @@ from d3grasp.kernels import world_state as ws
 from d3grasp.vocabulary import PHASES
 
 if TYPE_CHECKING:
+    from d3grasp.envs.config import GraspEnvConfig
     from d3grasp.envs.grasp_env import GraspEnv
 
 # Half-thickness of a finger link (m): hand-to-table distances are link frame heights above the
@@ -48,7 +52,8 @@ _STEP_INPUTS = (
 class RewardState:
     """What the reward owns on the environment (``env.reward``): the gather's parameters, the reward
     kernels' inputs and outputs, torch views of the terms (W, terms) and total (W,), of the inputs
-    written each step (``step_inputs``) and the residual penalty's term, and the replayed launch."""
+    written each step (``step_inputs``), the torch terms that are on (fixed when the env is built)
+    with the step's values, and the replayed launch."""
 
     gather_params: ws.RewardGatherParams
     inputs: rk.RewardInputs
@@ -56,7 +61,8 @@ class RewardState:
     terms: torch.Tensor
     total: torch.Tensor
     step_inputs: dict[str, torch.Tensor]
-    residual_term: torch.Tensor  # residual_penalty's, when on
+    torch_terms: tuple[TorchTerm, ...]  # the declared torch terms this configuration pays
+    step_terms: dict[str, torch.Tensor]  # the values of those paid each step, by name (W,)
     launch: Replayed
 
 
@@ -94,6 +100,7 @@ def allocate(env: GraspEnv) -> None:
     # The gather and the five reward launches replayed as one graph (the buffers above never move):
     # a launch from Python costs ~0.15 ms on the CPU, the kernels at a few worlds microseconds.
     launch = Replayed(lambda: _launches(env, prm, inputs, out), [ws, rk], dev, env.cfg.sim.use_graph)
+    on = tuple(t for t in TORCH_TERMS if t.on(env.cfg))
     env.reward = RewardState(
         gather_params=prm,
         inputs=inputs,
@@ -101,7 +108,8 @@ def allocate(env: GraspEnv) -> None:
         terms=wp_view(out.terms),
         total=wp_view(out.total),
         step_inputs={name: wp_view(getattr(inputs, name)) for name in _STEP_INPUTS},
-        residual_term=torch.zeros(W, device=env.torch_device),
+        torch_terms=on,
+        step_terms={t.name: torch.zeros(W, device=env.torch_device) for t in on if t.paid == "step"},
         launch=launch,
     )
 
@@ -129,11 +137,36 @@ def compute_rewards(env: GraspEnv) -> torch.Tensor:
     r = env.reward
     r.launch()
     total = torch.nan_to_num(r.total.clone(), nan=0.0, posinf=0.0, neginf=0.0)
-    if env.cfg.residual_penalty:
-        r.residual_term[:] = residual_penalty(env)  # kept for the step's log (Reward/residual)
-        total += r.residual_term
+    for term in r.torch_terms:
+        if term.paid == "step":
+            r.step_terms[term.name][:] = term.value(env)  # kept for the step's log
+            total += r.step_terms[term.name]
     clip = env.cfg.reward_clip
     return total.clamp(-clip, clip) if clip > 0 else total
+
+
+def reward_log(env: GraspEnv) -> dict[str, torch.Tensor]:
+    """The step's ``Reward/<name>`` means over the worlds: every kernel term and the torch step terms
+    that are on (unclipped)."""
+    log = {f"Reward/{n}": m for n, m in zip(rk.TERM_NAMES, env.reward.terms.mean(0).unbind(), strict=True)}
+    for name, value in env.reward.step_terms.items():
+        log[f"Reward/{name}"] = value.mean()
+    return log
+
+
+def pay_episode_terms(
+    env: GraspEnv, rew: torch.Tensor, finished: torch.Tensor, episodes: list[dict[str, Any]]
+) -> dict[str, float]:
+    """Add the torch terms paid at an episode's end to the last step's reward of the ``finished``
+    worlds (after the clip: a terminal outcome, not a blow-up); their sums over all worlds / W, by
+    ``Reward/<name>``."""
+    log = {}
+    for term in env.reward.torch_terms:
+        if term.paid == "episode":
+            value = term.value(env, episodes).to(rew.dtype)
+            rew[finished] += value
+            log[f"Reward/{term.name}"] = float(value.sum()) / env.num_envs
+    return log
 
 
 def reference_reward_inputs(env: GraspEnv) -> dict[str, torch.Tensor]:
@@ -171,6 +204,17 @@ def reference_reward_inputs(env: GraspEnv) -> dict[str, torch.Tensor]:
     }
 
 
+def success_bonus(env: GraspEnv, episodes: list[dict[str, Any]]) -> torch.Tensor:
+    """(len(episodes),) ``bonus_lift * s_lift + bonus_disturb * s_disturb`` of each finished episode,
+    its successes as the scoring counts them (d3grasp.kernels.scoring)."""
+    lift, disturb = env.cfg.success_bonus_lift, env.cfg.success_bonus_disturb
+    return torch.as_tensor(
+        [lift * ep["s_lift"] + disturb * ep["s_disturb"] for ep in episodes],
+        dtype=torch.float32,
+        device=env.torch_device,
+    )
+
+
 def residual_penalty(env: GraspEnv) -> torch.Tensor:
     """(W,) ``-residual_penalty * sum_j r_j^2``: the cost of the policy's offset ``r`` (per joint, in
     [-1, 1]) from the rule's targets in the residual action modes; zeros in the absolute mode."""
@@ -178,3 +222,30 @@ def residual_penalty(env: GraspEnv) -> torch.Tensor:
     if k == 0.0 or env.residual_base is None:
         return torch.zeros(env.num_envs, device=env.torch_device)
     return -k * env.act.residual.square().sum(-1)
+
+
+@dataclass(frozen=True)
+class TorchTerm:
+    """A reward term computed in torch beside the kernels' (logged as ``Reward/<name>``).
+
+    ``paid``: ``"step"``, ``value(env) -> (W,)`` added to every step's reward before the clip; or
+    ``"episode"``, ``value(env, episodes) -> (len(episodes),)`` added to the last step of each finished
+    episode. ``on(cfg)``: whether the configuration pays it (its weight is not zero)."""
+
+    name: str
+    paid: Literal["step", "episode"]
+    value: Callable[..., torch.Tensor]
+    on: Callable[[GraspEnvConfig], bool]
+
+
+# The torch terms, in the order they are added. The only place a torch term is declared: allocation,
+# the step's sum, the episode's end and the log all read this tuple.
+TORCH_TERMS: tuple[TorchTerm, ...] = (
+    TorchTerm("residual", "step", residual_penalty, lambda cfg: cfg.residual_penalty != 0.0),
+    TorchTerm(
+        "success_bonus",
+        "episode",
+        success_bonus,
+        lambda cfg: bool(cfg.success_bonus_lift or cfg.success_bonus_disturb),
+    ),
+)
