@@ -32,7 +32,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
-from d3grasp.train.runner import D3GraspRunner, EpisodeStats, IterationTiming
+from d3grasp.train.run_log import EpisodeStats, IterationTiming
+from d3grasp.train.runner import D3GraspRunner
 from rsl_rl.models import MLPModel
 from tensordict import TensorDict
 

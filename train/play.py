@@ -27,7 +27,8 @@ os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")
 import torch  # noqa: E402
 from d3grasp.train.cli_args import make_play_parser  # noqa: E402
 from d3grasp.train.export import ExportPaths, LatencyReport, export_policy, measure_latency  # noqa: E402
-from d3grasp.train.runner import EpisodeStats, read_checkpoint  # noqa: E402
+from d3grasp.train.run_log import EpisodeStats  # noqa: E402
+from d3grasp.train.runner import read_checkpoint  # noqa: E402
 from d3grasp.train.train import DistInfo, load_env_factory, resolve_device  # noqa: E402
 
 from d3grasp.cli.args import resolve_torch_threads, run_command  # noqa: E402

@@ -3,9 +3,8 @@
 What ``D3GraspRunner`` changes in rsl-rl 5.5.1's ``OnPolicyRunner`` and why:
 
 - Distributed training: rsl-rl initialises NCCL and requires ``cuda:<local_rank>``. Here CPU ranks use
-  gloo (one process per core, each simulating its own worlds) and CUDA ranks NCCL; PPO's gradient
-  all-reduce, parameter broadcast and normaliser statistics already go through ``torch.distributed``
-  and work unchanged on gloo.
+  gloo (one process per core, each simulating its own worlds) and CUDA ranks NCCL, and each rank's
+  gradient is weighed by its share of the worlds (``train/distributed.py``).
 - Checkpoints are written atomically (temp file in the same folder, fsync, ``os.replace``) and carry
   the task name and observation sizes, so loading a checkpoint of another task fails with a clear
   message before any weights are touched. SIGINT/SIGTERM stop training at the next environment step
@@ -15,22 +14,24 @@ What ``D3GraspRunner`` changes in rsl-rl 5.5.1's ``OnPolicyRunner`` and why:
   at that number (rsl-rl stores the index of the last iteration and repeats it on resume).
 - Per-iteration timings (simulation vs policy vs update) and grasp outcomes from the environment's
   ``extras["episodes"]`` (success per object kind, size bin and grasp type, summed over ranks) go to
-  TensorBoard next to rsl-rl's own scalars.
+  TensorBoard next to rsl-rl's own scalars (``train/run_log.py``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import signal
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from typing import Any
 
 os.environ.setdefault("GIT_PYTHON_REFRESH", "quiet")  # rsl_rl imports GitPython; a git binary is optional
 
 import torch  # noqa: E402
+from d3grasp.train import distributed  # noqa: E402
+from d3grasp.train.run_log import EpisodeStats, IterationTiming, TrainingProgress, format_diagnostics  # noqa: E402
+from d3grasp.train.stop_flag import StopFlag  # noqa: E402
 from rsl_rl.runners import OnPolicyRunner  # noqa: E402
 from rsl_rl.utils import check_nan  # noqa: E402
 
@@ -45,137 +46,15 @@ from d3grasp.policies.checkpoint import (  # noqa: E402  (re-exported: the runne
     observation_sizes,
     read_checkpoint,
 )
-from d3grasp.vocabulary import GRASP_TYPES, KINDS, METRICS, SIZE_BINS  # noqa: E402
 
 __all__ = [
     "CheckpointError",
     "D3GraspRunner",
-    "EpisodeStats",
-    "IterationTiming",
     "atomic_torch_save",
     "checkpoint_iteration",
     "latest_checkpoint",
     "read_checkpoint",
 ]
-
-# Group keys come from the fixed vocabulary, so every rank's outcome counts line up in one
-# all-reduced tensor.
-
-
-@dataclass
-class IterationTiming:
-    """Wall time of one training iteration, in seconds, and the env-steps it collected (all ranks)."""
-
-    iteration: int
-    sim_s: float  # inside env.step
-    rollout_s: float  # whole rollout: policy inference + env.step + storage
-    update_s: float  # returns + PPO update (incl. gradient all-reduce)
-    env_steps: int
-
-    @property
-    def total_s(self) -> float:
-        return self.rollout_s + self.update_s
-
-
-@dataclass
-class TrainingProgress:
-    """What a run has consumed since its first iteration, resumed runs included: env-steps of all
-    ranks and wall-clock seconds (checkpoint saves and object redraws counted). Stored in every
-    checkpoint, so a resumed run's curves continue where the first one stopped."""
-
-    env_steps: int = 0
-    wall_clock_s: float = 0.0
-
-
-class EpisodeStats:
-    """Counts of grasp outcomes over finished episodes, grouped by kind, size bin and grasp type."""
-
-    groups: tuple[str, ...] = (
-        ("all",)
-        + tuple(f"kind/{k}" for k in KINDS)
-        + tuple(f"size/{s}" for s in SIZE_BINS)
-        + tuple(f"grasp/{g}" for g in GRASP_TYPES)
-    )
-
-    def __init__(self) -> None:
-        self.counts = torch.zeros(len(self.groups), 1 + len(METRICS), dtype=torch.float64)
-        self._index = {g: i for i, g in enumerate(self.groups)}
-
-    def add(self, episodes: list[dict[str, Any]]) -> None:
-        for ep in episodes:
-            row = torch.tensor([1.0] + [float(bool(ep.get(m, False))) for m in METRICS], dtype=torch.float64)
-            keys = [
-                "all",
-                f"kind/{ep.get('kind')}",
-                f"size/{ep.get('size_bin')}",
-                f"grasp/{ep.get('grasp_type')}",
-            ]
-            for key in keys:
-                i = self._index.get(key)
-                if i is not None:
-                    self.counts[i] += row
-
-    def all_reduce(self) -> None:
-        if torch.distributed.is_available() and torch.distributed.is_initialized():
-            torch.distributed.all_reduce(self.counts, op=torch.distributed.ReduceOp.SUM)
-
-    def rates(self) -> dict[str, float]:
-        """``{"Success/<metric>/<group>": rate}`` for groups with at least one episode."""
-        out: dict[str, float] = {}
-        for i, group in enumerate(self.groups):
-            n = float(self.counts[i, 0])
-            if n > 0:
-                for j, m in enumerate(METRICS):
-                    out[f"Success/{m}/{group}"] = float(self.counts[i, 1 + j]) / n
-        out["Success/episodes"] = float(self.counts[0, 0])
-        return out
-
-    def clear(self) -> None:
-        self.counts.zero_()
-
-
-class _StopFlag:
-    """SIGINT/SIGTERM handler: the first signal asks training to stop cleanly, a second one aborts."""
-
-    def __init__(self) -> None:
-        self.requested = False
-        self._previous: dict[int, Any] = {}
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        if self.requested:  # second signal: give up on the clean stop
-            raise KeyboardInterrupt
-        self.requested = True
-        print(f"\n[d3grasp] {signal.Signals(signum).name}: stopping and saving a checkpoint (again to abort)")
-
-    @contextlib.contextmanager
-    def installed(self) -> Iterator[_StopFlag]:
-        import threading
-
-        if threading.current_thread() is not threading.main_thread():
-            yield self  # signal handlers can only be set from the main thread
-            return
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            self._previous[sig] = signal.signal(sig, self._handle)
-        try:
-            yield self
-        finally:
-            for sig, handler in self._previous.items():
-                signal.signal(sig, handler)
-
-
-def format_diagnostics(diagnostics: dict[str, float]) -> str:
-    """The console line of an update's diagnostics (D3GraspPPO.diagnose)."""
-    d = diagnostics
-    phases = " ".join(
-        f"{k.removeprefix('explained_variance_')} {v:.2f}"
-        for k, v in d.items()
-        if k.startswith("explained_variance_")
-    )
-    return (
-        f"{'Diagnostics:':>35} episodes {d.get('episodes_per_update', float('nan')):.0f} | "
-        f"grad cosine (split half) {d.get('grad_cosine_split_half', float('nan')):+.3f} | "
-        f"explained variance {d.get('explained_variance', float('nan')):.2f} ({phases})"
-    )
 
 
 def scale_actor_output(actor: torch.nn.Module, scale: float, num_actions: int) -> None:
@@ -223,7 +102,7 @@ class D3GraspRunner(OnPolicyRunner):
         self.timings: list[IterationTiming] = []
         self.progress = TrainingProgress()
         self.episode_stats = EpisodeStats()
-        self.stop_flag = _StopFlag()
+        self.stop_flag = StopFlag()
         self.logger._store_code_state = self._safe_store_code_state  # type: ignore[method-assign]
         scale = train_cfg.get("actor_output_init_scale")
         if scale is not None:
@@ -231,48 +110,23 @@ class D3GraspRunner(OnPolicyRunner):
         # Ranks may hold different numbers of worlds (--rank_num_envs): count the steps of all of them.
         # rsl-rl's logger counts num_envs x world size; its per-world buffers are already allocated.
         # Once here, not per learn(): a second learn() would weigh the gradients twice.
-        self.worlds_all_ranks = self._worlds_all_ranks()
+        self.worlds_all_ranks = int(distributed.sum_over_ranks(env.num_envs, self.ranks, self.device))
         self.logger.num_envs, self.logger.gpu_world_size = self.worlds_all_ranks, 1
         if self.is_distributed:
-            self._pool_rank_gradients(env.num_envs * self.gpu_world_size / self.worlds_all_ranks)
+            weight = env.num_envs * self.gpu_world_size / self.worlds_all_ranks
+            distributed.pool_rank_gradients(self.alg, weight)
 
-    # ----------------------------------------------------------------- distributed
     def _configure_multi_gpu(self) -> None:
-        """Like rsl-rl's, but gloo for CPU ranks and NCCL for ``cuda:<local_rank>`` ranks."""
-        self.gpu_world_size = int(os.getenv("WORLD_SIZE", "1"))
-        self.is_distributed = self.gpu_world_size > 1
-        if not self.is_distributed:
-            self.gpu_local_rank = 0
-            self.gpu_global_rank = 0
-            self.cfg["multi_gpu"] = None
-            return
-        self.gpu_local_rank = int(os.getenv("LOCAL_RANK", "0"))
-        self.gpu_global_rank = int(os.getenv("RANK", "0"))
-        if not 0 <= self.gpu_global_rank < self.gpu_world_size:
-            raise ValueError(f"RANK {self.gpu_global_rank} is outside WORLD_SIZE {self.gpu_world_size}")
-        self.cfg["multi_gpu"] = {
-            "global_rank": self.gpu_global_rank,
-            "local_rank": self.gpu_local_rank,
-            "world_size": self.gpu_world_size,
-        }
-        dev = torch.device(self.device)
-        if dev.type == "cuda":
-            expected = f"cuda:{self.gpu_local_rank}"
-            if str(dev) != expected:
-                raise ValueError(
-                    f"device '{self.device}' does not match local rank {self.gpu_local_rank}: "
-                    f"use '{expected}'"
-                )
-            torch.cuda.set_device(self.gpu_local_rank)
-            backend = "nccl"
-        elif dev.type == "cpu":
-            backend = "gloo"
-        else:
-            raise ValueError(f"distributed training supports cpu and cuda devices, not '{self.device}'")
-        if not torch.distributed.is_initialized():
-            torch.distributed.init_process_group(
-                backend=backend, rank=self.gpu_global_rank, world_size=self.gpu_world_size
-            )
+        """Called by rsl-rl's ``__init__``: its ranks, with gloo for CPU ranks (``train/distributed.py``)."""
+        self.ranks = r = distributed.init_ranks(self.device)
+        self.gpu_world_size, self.gpu_local_rank = r.world_size, r.local_rank
+        self.gpu_global_rank = r.global_rank
+        self.is_distributed = r.distributed
+        self.cfg["multi_gpu"] = (
+            {"global_rank": r.global_rank, "local_rank": r.local_rank, "world_size": r.world_size}
+            if r.distributed
+            else None
+        )
 
     # ----------------------------------------------------------------- training loop
     def learn(self, num_learning_iterations: int, init_at_random_ep_len: bool = False) -> None:
@@ -386,7 +240,7 @@ class D3GraspRunner(OnPolicyRunner):
         if self.log_dir is not None and done % int(self.cfg["save_interval"]) == 0:
             self.save(os.path.join(self.log_dir, f"model_{done}.pt"))
             self._saved_at = done
-        if self._agree_to_stop(stop_requested):
+        if distributed.agree_to_stop(stop_requested, self.ranks, self.device):
             return True, env, obs
         every = int(self.cfg.get("resample_objects_every") or 0)
         if every and self.env_builder is not None and done % every == 0 and done < total_it:
@@ -447,46 +301,6 @@ class D3GraspRunner(OnPolicyRunner):
         finally:
             for param in params:
                 param.requires_grad_(True)
-
-    def _pool_rank_gradients(self, weight: float) -> None:
-        """Weigh this rank's gradients by its share of the worlds before rsl-rl averages them, so
-        the update is the one of all ranks' samples pooled in one batch.
-
-        rsl-rl averages the ranks' mini-batch gradients with equal weights, and each rank normalises
-        its advantages over its own batch: a rank of 4 soft worlds beside one of 96 rigid worlds then
-        steered half of every update with 1/25 of the samples. Measured over iterations 20-60 of two
-        such runs: training s_lift 0.20-0.26 with equal weights, 0.30-0.39 pooled (docs/design.md,
-        Fine-tuning the residual; both below the rule). With equal worlds on every rank the weight
-        is 1 and nothing changes.
-        """
-        if weight == 1.0:
-            return
-        reduce = self.alg.reduce_parameters
-        modules = [self.alg.actor, self.alg.critic] + ([self.alg.rnd] if self.alg.rnd else [])
-
-        def weighted_reduce() -> None:
-            for module in modules:
-                for param in module.parameters():
-                    if param.grad is not None:
-                        param.grad.mul_(weight)
-            reduce()
-
-        self.alg.reduce_parameters = weighted_reduce  # type: ignore[method-assign]
-
-    def _worlds_all_ranks(self) -> int:
-        if not self.is_distributed:
-            return int(self.env.num_envs)
-        count = torch.tensor([float(self.env.num_envs)], device=self.device)
-        torch.distributed.all_reduce(count, op=torch.distributed.ReduceOp.SUM)
-        return int(count.item())
-
-    def _agree_to_stop(self, local: bool) -> bool:
-        """All ranks stop together (a rank leaving early would hang the others' all-reduce)."""
-        if not self.is_distributed:
-            return local
-        flag = torch.tensor([1.0 if local else 0.0], device=self.device)
-        torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
-        return bool(flag.item() > 0)
 
     def _record_step(self, env: Any) -> None:
         """Tell the algorithm which worlds' coming actions take effect and in which phase (for its

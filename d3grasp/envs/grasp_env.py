@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import gc
 import os
-import warnings
 from collections.abc import Callable
 from dataclasses import asdict
 from typing import Any
@@ -34,7 +33,7 @@ from d3grasp.authoring.manifest import resolve_asset_path
 from d3grasp.dexhand13 import ABDUCTION_JOINTS
 from d3grasp.envs.baseline import RuleBasedController, rest_targets
 from d3grasp.envs.config import ACTION_MODES, CLOSING_PRIORS, GRASP_SOURCES, PERCEPTION_MODES, GraspEnvConfig
-from d3grasp.envs.grasp_file import changed_settings, environment_record, load_grasp_plan, without_prior
+from d3grasp.envs.grasp_file import environment_record, load_grasp_plan, warn_changed_settings, without_prior
 from d3grasp.envs.mdp import actions as mdp_actions
 from d3grasp.envs.mdp import events, observations, rewards, terminations
 from d3grasp.envs.parts import (
@@ -90,7 +89,7 @@ class GraspEnv:
         self.planning = Planning(load_grasp_plan(self.manifest_path) if cfg.grasp_source == "file" else None)
         if self.planning.plan:
             current = without_prior(environment_record(cfg.sim, cfg.rule))
-            _warn_changed_settings(self.planning.plan, self.world_entries, current)
+            warn_changed_settings(self.planning.plan, self.world_entries, current)
         self._build()
         self._allocate_buffers()
         # What the planner is told of each placed object: the true pose or the camera's estimate
@@ -403,24 +402,6 @@ class GraspEnv:
         for name in [n for n in vars(self) if n not in keep]:
             delattr(self, name)
         gc.collect()
-
-
-def _warn_changed_settings(plan: dict[str, Any], entries: list[Any], current: dict[str, Any]) -> None:
-    """One warning when the worlds' stored grasps were measured under other simulation or rule
-    settings than this environment's: they may not hold here."""
-    changed: dict[str, list[str]] = {}
-    for e in entries:
-        stored = plan.get(e.id)
-        for c in changed_settings(stored.environment if stored else None, current):
-            changed.setdefault(c, []).append(e.id)
-    if changed:
-        ids = sorted({i for v in changed.values() for i in v})
-        warnings.warn(
-            f"the grasps of {len(ids)} object(s) ({', '.join(ids[:3])}{', ...' if len(ids) > 3 else ''}) "
-            f"were planned under other settings ({'; '.join(changed)}): they may not hold under these; "
-            "replan them with `d3grasp-assets plan-grasps DIR`, DIR their library's folder",
-            stacklevel=4,
-        )
 
 
 def _check_config(cfg: GraspEnvConfig, num_envs: int) -> None:

@@ -29,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -160,3 +161,21 @@ def load_grasp_plan(manifest: str | Path) -> dict[str, StoredGrasps] | None:
                 grasps, scores, np.asarray(e.extents, dtype=np.float64), rec.get("environment")
             )
     return plan
+
+
+def warn_changed_settings(plan: dict[str, Any], entries: list[Any], current: dict[str, Any]) -> None:
+    """One warning when the worlds' stored grasps were measured under other simulation or rule
+    settings than this environment's: they may not hold here."""
+    changed: dict[str, list[str]] = {}
+    for e in entries:
+        stored = plan.get(e.id)
+        for c in changed_settings(stored.environment if stored else None, current):
+            changed.setdefault(c, []).append(e.id)
+    if changed:
+        ids = sorted({i for v in changed.values() for i in v})
+        warnings.warn(
+            f"the grasps of {len(ids)} object(s) ({', '.join(ids[:3])}{', ...' if len(ids) > 3 else ''}) "
+            f"were planned under other settings ({'; '.join(changed)}): they may not hold under these; "
+            "replan them with `d3grasp-assets plan-grasps DIR`, DIR their library's folder",
+            stacklevel=4,
+        )

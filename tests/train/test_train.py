@@ -32,10 +32,10 @@ from d3grasp.train.cli_args import make_train_parser
 from d3grasp.train.configs import fit_mini_batches, make_train_cfg, set_cfg_value
 from d3grasp.train.play import main as play_main
 from d3grasp.train.play import play
+from d3grasp.train.run_log import EpisodeStats
 from d3grasp.train.runner import (
     CheckpointError,
     D3GraspRunner,
-    EpisodeStats,
     atomic_torch_save,
     latest_checkpoint,
     read_checkpoint,
