@@ -65,7 +65,7 @@ def _kernel_fixtures(num_worlds: int, rng: np.random.Generator) -> dict[str, Cal
     """Device data for every kernel group at realistic per-world sizes; returns one closure per group."""
     import warp as wp
 
-    from d3grasp.kernels import rewards, rotation, strain, tactile
+    from d3grasp.kernels import rewards, rotation, strain, strain_numpy, tactile
 
     w = num_worlds
     # --- tactile: 20 shapes per world (11 pads), one ground shape, 2000 rows per world
@@ -108,7 +108,7 @@ def _kernel_fixtures(num_worlds: int, rng: np.random.Generator) -> dict[str, Cal
         tactile.pad_frame_forces(layout, world_f, body_q, tcfg, pad_f, pad_c)
 
     # --- strain and pose: one 512-node, 2058-tet object per world
-    rest1, tets1 = strain.grid_tet_mesh(8, 8, 8, spacing=0.008)
+    rest1, tets1 = strain_numpy.grid_tet_mesh(8, 8, 8, spacing=0.008)
     n1 = len(rest1)
     rest = np.concatenate([rest1 + [0.5 * i, 0.0, 0.0] for i in range(w)])
     tets = np.concatenate([tets1 + i * n1 for i in range(w)])

@@ -132,6 +132,39 @@ SOAK_ACTION_AUTHORITY: dict[str, Any] = {
 }
 
 
+def _settings(
+    steps: int,
+    task: str,
+    num_envs: int,
+    seed: int,
+    rebuild_every: int,
+    soft_fraction: float,
+    overrides: dict[str, Any] | None,
+) -> dict[str, Any]:
+    """Check the soak's arguments; the settings a report records (a resumed soak must match them)."""
+    if steps < 1 or num_envs < 1 or rebuild_every < num_envs:
+        raise ValueError("--steps and --num_envs must be positive and --rebuild_every >= --num_envs")
+    if not 0.0 <= soft_fraction <= 1.0:
+        raise ValueError(f"--soft_fraction must be in [0, 1], got {soft_fraction}")
+    return {
+        "task": task,
+        "num_envs": num_envs,
+        "seed": seed,
+        "rebuild_every": rebuild_every,
+        "soft_fraction": soft_fraction,
+        "overrides": {**SOAK_ACTION_AUTHORITY, **(overrides or {})},
+    }
+
+
+def _initial_report(settings: dict[str, Any], state_path: Path | None, resume: bool) -> SoakReport:
+    """The report a soak starts from: the state file's when resuming, else a fresh one."""
+    if resume:
+        if state_path is None or not state_path.exists():
+            raise ValueError("--resume needs an existing --state file")
+        return _load(state_path, settings)
+    return SoakReport(**settings)
+
+
 def run_soak(
     steps: int,
     *,
@@ -157,25 +190,9 @@ def run_soak(
     quiet_warp()
 
     task = task or DEFAULT_TASK
-    if steps < 1 or num_envs < 1 or rebuild_every < num_envs:
-        raise ValueError("--steps and --num_envs must be positive and --rebuild_every >= --num_envs")
-    if not 0.0 <= soft_fraction <= 1.0:
-        raise ValueError(f"--soft_fraction must be in [0, 1], got {soft_fraction}")
-    settings = {
-        "task": task,
-        "num_envs": num_envs,
-        "seed": seed,
-        "rebuild_every": rebuild_every,
-        "soft_fraction": soft_fraction,
-        "overrides": {**SOAK_ACTION_AUTHORITY, **(overrides or {})},
-    }
+    settings = _settings(steps, task, num_envs, seed, rebuild_every, soft_fraction, overrides)
     state_path = Path(state) if state else None
-    if resume:
-        if state_path is None or not state_path.exists():
-            raise ValueError("--resume needs an existing --state file")
-        report = _load(state_path, settings)
-    else:
-        report = SoakReport(**settings)
+    report = _initial_report(settings, state_path, resume)
     bar = None
     if progress:
         from tqdm import tqdm

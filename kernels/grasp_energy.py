@@ -3,8 +3,8 @@
 A grasp is one row of parameters ``x = (p, q, theta)``: the palm position ``p`` (3, object frame, m),
 the palm orientation as a quaternion ``q`` (4, ``x, y, z, w``; normalised inside the energy, so any
 non-zero row is a rotation) and the joint angles ``theta`` (``J``, rad). Forward kinematics
-(:class:`HandLayout`, revolute joints, URDF convention ``child = parent · origin · Rot(axis, theta)``)
-places the hand's points in the object frame:
+(:class:`~d3grasp.kernels.grasp_energy_inputs.HandLayout`, revolute joints, URDF convention
+``child = parent · origin · Rot(axis, theta)``) places the hand's points in the object frame:
 
 * contact points ``x_i`` with outward normals ``n_i`` (the tactile pads' outer face centres and
   points on the palm's palmar face; ``n_i`` points from the hand towards the object, so a pad pushes
@@ -46,302 +46,35 @@ gradient continuous at the limit).
 Kernels (float32, one thread per grasp and item, reductions by atomics, so the whole chain supports
 ``wp.Tape``): the palm pose, one launch per depth of the kinematic tree (a joint reads its parent
 link written by the previous launch), the points' terms, the joint limits and the total.
-:class:`GraspEnergy` holds the buffers for ``n`` grasps and returns energies and gradients;
-:func:`descend` runs Adam on many starts at once. :func:`reference_energy` is a float64 NumPy twin
-written from the equations above (rotation matrices and Rodrigues' formula, no Warp), for the tests.
+:class:`GraspEnergy` holds the buffers for ``n`` grasps and returns energies and gradients.
 
-This module imports nothing of the d3grasp package: the hand comes in as a plain dict
-(:meth:`HandLayout.from_dict`, built by ``d3grasp.planner.synthesis`` from the hand's USD file).
+Around it: :mod:`d3grasp.kernels.grasp_energy_inputs` (the hand's layout, the object's shape, the
+weights), :mod:`d3grasp.kernels.grasp_descent` (Adam on many starts at once) and
+:mod:`d3grasp.kernels.grasp_energy_reference` (a float64 NumPy twin written from the equations above,
+for the tests). None of them imports the d3grasp package outside ``d3grasp.kernels``: the hand comes
+in as a plain dict (``HandLayout.from_dict``, built by ``d3grasp.planner.synthesis`` from the hand's
+USD file).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import warp as wp
+from d3grasp.kernels.grasp_energy_inputs import (
+    TERM_NAMES,
+    EnergyWeights,
+    HandLayout,
+    ObjectShape,
+    contact_weight_rows,
+    matrix_to_quat_xyzw,
+)
 
-__all__ = [
-    "POSE_PARAMS",
-    "TERM_NAMES",
-    "DescentResult",
-    "EnergyWeights",
-    "GraspEnergy",
-    "HandLayout",
-    "ObjectShape",
-    "descend",
-    "reference_energy",
-    "reference_points",
-]
-
-POSE_PARAMS = 7
-"""Parameters of the palm pose at the start of each row: position (3), quaternion x, y, z, w (4)."""
-
-TERM_NAMES: tuple[str, ...] = ("fc", "cone", "dist", "pen", "joint")
-"""The energy's terms, in the order of :class:`EnergyWeights` and of the ``terms`` arrays."""
-
-OBJECT_SPHERE = 0
-OBJECT_BOX = 1
-OBJECT_MESH = 2
-_OBJECT_KINDS = {"sphere": OBJECT_SPHERE, "box": OBJECT_BOX, "mesh": OBJECT_MESH}
+__all__ = ["GraspEnergy"]
 
 _MESH_MAX_DIST = 10.0  # m: a mesh query farther than this finds nothing (no hand point is that far)
-
-
-# --------------------------------------------------------------------------------------------
-# Layout of the hand: kinematic tree, contact points, penetration samples.
-# --------------------------------------------------------------------------------------------
-
-
-def _as_rotation(value: Any) -> np.ndarray:
-    r = np.asarray(value, dtype=np.float64)
-    if r.shape != (3, 3) or not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0.0:
-        raise ValueError(f"expected a 3x3 rotation matrix, got {value!r}")
-    return r
-
-
-def _matrix_to_quat_xyzw(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix (the largest of the four pivots)."""
-    t = np.trace(r)
-    pivots = (t, r[0, 0], r[1, 1], r[2, 2])
-    k = int(np.argmax(pivots))
-    if k == 0:
-        s = 2.0 * math.sqrt(1.0 + t)
-        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s]
-    elif k == 1:
-        s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        q = [0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
-    elif k == 2:
-        s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        q = [(r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s]
-    q = np.asarray(q)
-    return q / np.linalg.norm(q)
-
-
-def _box_grid(box_min: np.ndarray, box_max: np.ndarray, per_axis: int) -> np.ndarray:
-    axes = [np.linspace(box_min[a], box_max[a], per_axis) for a in range(3)]
-    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-
-
-@dataclass(frozen=True)
-class HandLayout:
-    """The hand as arrays: a tree of revolute joints, contact points and penetration samples.
-
-    Links are numbered ``0`` (the root, the palm) and ``1 + j`` (the child link of joint ``j``); the
-    joints are in the order of the joint angles in a parameter row. Points are the contacts first
-    (``num_contacts`` of them, with outward normals), then the penetration samples (zero normals).
-    Build it with :meth:`from_dict`.
-    """
-
-    joint_names: tuple[str, ...]
-    joint_parent: np.ndarray  # (J,) int: link index of each joint's parent
-    joint_origin_pos: np.ndarray  # (J, 3) joint frame's origin in the parent link frame
-    joint_origin_rot: np.ndarray  # (J, 3, 3) joint frame's rotation in the parent link frame
-    joint_axis: np.ndarray  # (J, 3) unit axis in the joint frame
-    joint_lower: np.ndarray  # (J,) rad
-    joint_upper: np.ndarray  # (J,) rad
-    joint_levels: tuple[tuple[int, ...], ...]  # joints grouped by depth in the tree, root first
-    contact_names: tuple[str, ...]
-    point_link: np.ndarray  # (P,) int: link of each point
-    point_pos: np.ndarray  # (P, 3) in its link's frame
-    point_normal: np.ndarray  # (P, 3) outward unit normal of a contact in its link's frame; 0 for samples
-
-    @property
-    def num_joints(self) -> int:
-        return len(self.joint_names)
-
-    @property
-    def num_links(self) -> int:
-        return 1 + self.num_joints
-
-    @property
-    def num_contacts(self) -> int:
-        return len(self.contact_names)
-
-    @property
-    def num_points(self) -> int:
-        return len(self.point_link)
-
-    @property
-    def num_params(self) -> int:
-        return POSE_PARAMS + self.num_joints
-
-    def contact_index(self, name: str) -> int:
-        return self.contact_names.index(name)
-
-    @classmethod
-    def from_dict(
-        cls, d: dict[str, Any], samples_per_axis: int = 3, pad_clearance: float = 0.001
-    ) -> HandLayout:
-        """The layout of a hand described by ``d``:
-
-        * ``root``: the root link's name;
-        * ``joints``: list of ``{name, parent, child, xyz, rot, axis, lower, upper}`` in the order of
-          the joint angles (``rot`` a 3x3 rotation matrix: the joint frame in the parent link frame,
-          ``axis`` in the joint frame, limits in rad);
-        * ``contacts``: list of ``{name, link, xyz, normal}`` (a point and outward normal in the
-          link's frame);
-        * ``colliders``: list of ``{link, box_min, box_max}`` (boxes in the link's frame).
-
-        Each collider box gets a ``samples_per_axis``³ grid of penetration samples. A sample is
-        dropped if it lies less than ``pad_clearance`` behind the plane of a contact on the same link
-        (the collider boxes are the links' bounding boxes and stick out past the pads a little in
-        places; such samples would fight the distance term where a pad touches the object).
-        """
-        root = str(d["root"])
-        joints = list(d["joints"])
-        link_index = {root: 0}
-        for j, jd in enumerate(joints):
-            if jd["child"] in link_index:
-                raise ValueError(f"link {jd['child']!r} is the child of two joints")
-            link_index[jd["child"]] = 1 + j
-        parent = np.array([link_index.get(jd["parent"], -1) for jd in joints], dtype=np.int32)
-        if np.any(parent < 0):
-            missing = [jd["parent"] for jd, p in zip(joints, parent, strict=True) if p < 0]
-            raise ValueError(f"joints with unknown parent links: {missing}")
-        depth = np.zeros(len(joints), dtype=np.int64)
-        for _ in range(len(joints)):  # depth = 1 + the parent joint's depth (root children: 0)
-            for j in range(len(joints)):
-                depth[j] = 0 if parent[j] == 0 else depth[parent[j] - 1] + 1
-        if len(joints) and int(depth.max()) >= len(joints):
-            raise ValueError("the joints do not form a tree")
-        levels = tuple(
-            tuple(int(j) for j in np.flatnonzero(depth == k))
-            for k in range(int(depth.max()) + 1 if joints else 0)
-        )
-        axis = np.array([np.asarray(jd["axis"], dtype=np.float64) for jd in joints]).reshape(-1, 3)
-        if len(axis) and not np.allclose(np.linalg.norm(axis, axis=1), 1.0, atol=1e-6):
-            raise ValueError("joint axes must be unit vectors")
-        lower = np.array([float(jd["lower"]) for jd in joints])
-        upper = np.array([float(jd["upper"]) for jd in joints])
-        if np.any(lower > upper):
-            raise ValueError("a joint's lower limit is above its upper limit")
-
-        contacts = list(d.get("contacts", ()))
-        if not contacts:
-            raise ValueError("a hand layout needs at least one contact point")
-        c_link = np.array([link_index[c["link"]] for c in contacts], dtype=np.int32)
-        c_pos = np.array([np.asarray(c["xyz"], dtype=np.float64) for c in contacts])
-        c_nrm = np.array([np.asarray(c["normal"], dtype=np.float64) for c in contacts])
-        c_nrm /= np.linalg.norm(c_nrm, axis=1, keepdims=True)
-
-        s_link: list[int] = []
-        s_pos: list[np.ndarray] = []
-        for box in d.get("colliders", ()):
-            link = link_index[box["link"]]
-            grid = _box_grid(
-                np.asarray(box["box_min"], float), np.asarray(box["box_max"], float), samples_per_axis
-            )
-            on_link = c_link == link
-            if np.any(on_link):
-                # signed height of each sample over each same-link contact's plane, along its normal
-                height = np.einsum("skc,kc->sk", grid[:, None, :] - c_pos[None, on_link], c_nrm[on_link])
-                grid = grid[np.all(height < -pad_clearance, axis=1)]
-            s_link += [link] * len(grid)
-            s_pos.append(grid)
-        samples = np.concatenate(s_pos) if s_pos else np.zeros((0, 3))
-        return cls(
-            joint_names=tuple(str(jd["name"]) for jd in joints),
-            joint_parent=parent,
-            joint_origin_pos=np.array([np.asarray(jd["xyz"], dtype=np.float64) for jd in joints]).reshape(
-                -1, 3
-            ),
-            joint_origin_rot=np.array([_as_rotation(jd["rot"]) for jd in joints]).reshape(-1, 3, 3),
-            joint_axis=axis,
-            joint_lower=lower,
-            joint_upper=upper,
-            joint_levels=levels,
-            contact_names=tuple(str(c["name"]) for c in contacts),
-            point_link=np.concatenate([c_link, np.asarray(s_link, dtype=np.int32)]).astype(np.int32),
-            point_pos=np.concatenate([c_pos, samples]),
-            point_normal=np.concatenate([c_nrm, np.zeros_like(samples)]),
-        )
-
-
-# --------------------------------------------------------------------------------------------
-# The object.
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class ObjectShape:
-    """The object's signed distance, in its own frame: ``kind`` ``"sphere"`` (``size[0]`` the radius),
-    ``"box"`` (``size`` the half extents) or ``"mesh"`` (a closed, consistently wound triangle mesh;
-    ``size`` its bounding box's half extents). ``torque_length`` (m) scales torques to the forces'
-    units (module docstring); ``floor_z`` is the table's height in the object frame (hand points
-    below it count as penetration; ``None``: no table)."""
-
-    kind: str
-    size: tuple[float, float, float]
-    torque_length: float
-    floor_z: float | None = None
-    mesh: wp.Mesh | None = None
-    mesh_points: np.ndarray | None = None
-    mesh_faces: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        if self.kind not in _OBJECT_KINDS:
-            raise ValueError(f"object kind must be one of {sorted(_OBJECT_KINDS)}, got {self.kind!r}")
-        if self.kind == "mesh" and self.mesh is None:
-            raise ValueError("a mesh object needs its wp.Mesh (ObjectShape.from_mesh)")
-        if not self.torque_length > 0.0:
-            raise ValueError("torque_length must be positive")
-
-    @property
-    def kind_id(self) -> int:
-        return _OBJECT_KINDS[self.kind]
-
-    @property
-    def mesh_id(self) -> int:
-        return int(self.mesh.id) if self.mesh is not None else 0
-
-    @classmethod
-    def sphere(cls, radius: float, floor_z: float | None = None) -> ObjectShape:
-        return cls("sphere", (float(radius), 0.0, 0.0), float(radius), floor_z)
-
-    @classmethod
-    def box(cls, half_extents: Any, floor_z: float | None = None) -> ObjectShape:
-        h = tuple(float(v) for v in np.broadcast_to(np.asarray(half_extents, dtype=np.float64), (3,)))
-        return cls("box", h, float(np.mean(h)), floor_z)
-
-    @classmethod
-    def from_mesh(
-        cls, points: np.ndarray, faces: np.ndarray, floor_z: float | None = None, device: Any = None
-    ) -> ObjectShape:
-        """A closed triangle mesh (``points`` (V, 3) in the object frame, ``faces`` (F, 3), outward
-        counter-clockwise winding)."""
-        pts = np.asarray(points, dtype=np.float64)
-        tri = np.asarray(faces, dtype=np.int32).reshape(-1, 3)
-        mesh = wp.Mesh(
-            points=wp.array(pts.astype(np.float32), dtype=wp.vec3, device=device),
-            indices=wp.array(tri.ravel(), dtype=wp.int32, device=device),
-        )
-        half = 0.5 * (pts.max(axis=0) - pts.min(axis=0))
-        return cls("mesh", tuple(float(v) for v in half), float(np.mean(half)), floor_z, mesh, pts, tri)
-
-
-@dataclass(frozen=True)
-class EnergyWeights:
-    """Weights of the terms (module docstring) and the friction coefficient of the cone.
-
-    Distances are in metres: ``dist`` 100 /m makes 1 cm of gap per contact cost as much as a unit
-    force residual (DexGraspNet's weight); ``pen`` 300 /m per point makes a link sunk 3 mm into the
-    object cost about as much. ``mu`` 0.5 is a margin under the simulated hand's friction of 1.0."""
-
-    fc: float = 1.0
-    cone: float = 1.0
-    dist: float = 100.0
-    pen: float = 300.0
-    joint: float = 10.0
-    mu: float = 0.5
-
-    def as_tuple(self) -> tuple[float, float, float, float, float]:
-        return (self.fc, self.cone, self.dist, self.pen, self.joint)
 
 
 # --------------------------------------------------------------------------------------------
@@ -526,19 +259,8 @@ def _total_kernel(
 
 
 # --------------------------------------------------------------------------------------------
-# Host side: buffers, energy and gradient, descent.
+# Host side: buffers, energy and gradient.
 # --------------------------------------------------------------------------------------------
-
-
-def _contact_weight_rows(contact_weight: Any, num_grasps: int, num_contacts: int) -> np.ndarray:
-    w = np.asarray(contact_weight, dtype=np.float64)
-    if w.ndim == 1:
-        w = np.broadcast_to(w, (num_grasps, w.shape[0]))
-    if w.shape != (num_grasps, num_contacts):
-        raise ValueError(
-            f"contact weights must be ({num_contacts},) or ({num_grasps}, {num_contacts}), got {w.shape}"
-        )
-    return np.ascontiguousarray(w)
 
 
 class GraspEnergy:
@@ -566,7 +288,7 @@ class GraspEnergy:
         origins = np.concatenate(
             [
                 layout.joint_origin_pos,
-                np.array([_matrix_to_quat_xyzw(r) for r in layout.joint_origin_rot]).reshape(-1, 4),
+                np.array([matrix_to_quat_xyzw(r) for r in layout.joint_origin_rot]).reshape(-1, 4),
             ],
             axis=1,
         )
@@ -600,7 +322,7 @@ class GraspEnergy:
 
     def set_contact_weight(self, contact_weight: Any) -> None:
         """Which contacts take part (weight per contact, per grasp or one row for all)."""
-        w = _contact_weight_rows(contact_weight, self.num_grasps, self.layout.num_contacts)
+        w = contact_weight_rows(contact_weight, self.num_grasps, self.layout.num_contacts)
         self._contact_weight.assign(w.astype(np.float32))
 
     def _launch(self) -> None:
@@ -700,162 +422,3 @@ class GraspEnergy:
         out["normals"] = self.normals.numpy().astype(np.float64)
         out["sd"] = self.sd.numpy().astype(np.float64)
         return out
-
-
-@dataclass
-class DescentResult:
-    """Final parameters (n, 7 + J) with unit quaternions, their terms, and the energy per step."""
-
-    params: np.ndarray
-    terms: dict[str, np.ndarray]
-    history: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (steps + 1, n)
-
-
-def descend(
-    layout: HandLayout,
-    params0: np.ndarray,
-    obj: ObjectShape,
-    contact_weight: Any,
-    weights: EnergyWeights | None = None,
-    steps: int = 200,
-    lr_position: float = 2.0e-3,
-    lr_rotation: float = 2.0e-2,
-    lr_joint: float = 3.0e-2,
-    lr_final: float = 0.1,
-    clamp_joints: bool = True,
-    device: Any = None,
-) -> DescentResult:
-    """Adam (Kingma & Ba 2015, beta 0.9/0.999) on every row of ``params0`` at once.
-
-    Learning rates are per group because the parameters have different units (m, quaternion
-    components, rad): Adam's step is about ``lr`` per parameter, so ``lr_position`` 2 mm and
-    ``lr_joint`` 0.03 rad move the hand by a few mm per step; the rates decay exponentially to
-    ``lr_final`` times these by the last step, so the end is not an Adam jitter of that size (a pad
-    gap of a few mm at a constant rate). After each step the quaternions are
-    renormalised and, with ``clamp_joints``, the joint angles projected into their limits (then the
-    limit term only matters for starts outside them)."""
-    energy_fn = GraspEnergy(layout, obj, len(params0), contact_weight, weights, device)
-    x = np.array(params0, dtype=np.float64)
-    lr = np.full(layout.num_params, lr_joint)
-    lr[:3] = lr_position
-    lr[3:POSE_PARAMS] = lr_rotation
-    m = np.zeros_like(x)
-    v = np.zeros_like(x)
-    beta1, beta2, eps = 0.9, 0.999, 1.0e-12
-    history = []
-    for step in range(1, steps + 1):
-        e, g = energy_fn.evaluate(x, grad=True)
-        history.append(e)
-        g = np.nan_to_num(g)
-        m = beta1 * m + (1.0 - beta1) * g
-        v = beta2 * v + (1.0 - beta2) * g * g
-        m_hat = m / (1.0 - beta1**step)
-        v_hat = v / (1.0 - beta2**step)
-        decay = lr_final ** ((step - 1) / max(steps - 1, 1))
-        x -= (decay * lr) * m_hat / (np.sqrt(v_hat) + eps)
-        x[:, 3:POSE_PARAMS] /= np.linalg.norm(x[:, 3:POSE_PARAMS], axis=1, keepdims=True)
-        if clamp_joints:
-            x[:, POSE_PARAMS:] = np.clip(x[:, POSE_PARAMS:], layout.joint_lower, layout.joint_upper)
-    e, _ = energy_fn.evaluate(x)
-    history.append(e)
-    return DescentResult(params=x, terms=energy_fn.terms(), history=np.array(history))
-
-
-# --------------------------------------------------------------------------------------------
-# NumPy float64 twin (forward only), from the equations of the module docstring.
-# --------------------------------------------------------------------------------------------
-
-
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) rotation matrices of (n, 4) quaternions (x, y, z, w), normalised first."""
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    x, y, z, w = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
-        ],
-        axis=1,
-    )
-
-
-def _rodrigues(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) rotations by ``angle`` (n,) about the unit ``axis`` (3,)."""
-    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
-
-
-def reference_points(layout: HandLayout, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Object-frame positions and normals (n, P, 3) of the layout's points (float64 forward kinematics)."""
-    x = np.asarray(params, dtype=np.float64)
-    rot = [_quat_matrix(x[:, 3:POSE_PARAMS])] + [None] * layout.num_joints
-    pos = [x[:, :3]] + [None] * layout.num_joints
-    for level in layout.joint_levels:
-        for j in level:
-            pr, pp = rot[layout.joint_parent[j]], pos[layout.joint_parent[j]]
-            r_joint = layout.joint_origin_rot[j] @ _rodrigues(layout.joint_axis[j], x[:, POSE_PARAMS + j])
-            rot[1 + j] = pr @ r_joint
-            pos[1 + j] = pp + pr @ layout.joint_origin_pos[j]
-    rots, poss = np.stack(rot, axis=1), np.stack(pos, axis=1)  # (n, L, 3, 3), (n, L, 3)
-    r_pt = rots[:, layout.point_link]
-    points = np.einsum("npij,pj->npi", r_pt, layout.point_pos) + poss[:, layout.point_link]
-    normals = np.einsum("npij,pj->npi", r_pt, layout.point_normal)
-    return points, normals
-
-
-def _reference_sdf(obj: ObjectShape, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distance (...,) and outward normal (..., 3) of a sphere or box (float64)."""
-    if obj.kind == "sphere":
-        r = np.linalg.norm(p, axis=-1)
-        return r - obj.size[0], p / np.maximum(r, 1e-12)[..., None]
-    if obj.kind != "box":
-        raise NotImplementedError("the NumPy twin covers the sphere and the box")
-    half = np.asarray(obj.size)
-    sign = np.where(p >= 0.0, 1.0, -1.0)
-    q = np.abs(p) - half
-    outside = np.maximum(q, 0.0)
-    out_d = np.linalg.norm(outside, axis=-1)
-    in_axis = np.argmax(q, axis=-1)  # the nearest face inside (first of equals, as the kernel)
-    in_d = np.take_along_axis(q, in_axis[..., None], axis=-1)[..., 0]
-    in_n = np.eye(3)[in_axis] * sign
-    is_out = q.max(axis=-1) > 0.0
-    sd = np.where(is_out, out_d, in_d)
-    n = np.where(is_out[..., None], sign * outside / np.maximum(out_d, 1e-12)[..., None], in_n)
-    return sd, n
-
-
-def reference_energy(
-    layout: HandLayout,
-    params: np.ndarray,
-    obj: ObjectShape,
-    contact_weight: Any,
-    weights: EnergyWeights | None = None,
-) -> dict[str, np.ndarray]:
-    """The energy and its terms (n,) in float64, by :data:`TERM_NAMES` and ``energy`` (sphere and box)."""
-    w = weights or EnergyWeights()
-    x = np.asarray(params, dtype=np.float64)
-    n = x.shape[0]
-    cw = _contact_weight_rows(contact_weight, n, layout.num_contacts)
-    points, normals = reference_points(layout, x)
-    sd, m = _reference_sdf(obj, points)
-    floor = obj.floor_z if obj.floor_z is not None else -1.0e6
-    pen = np.sum(np.maximum(-sd, 0.0) + np.maximum(floor - points[..., 2], 0.0), axis=1)
-    c = layout.num_contacts
-    active = cw > 0.0
-    cw = np.where(active, cw, 0.0)
-    dist = np.sum(cw * np.abs(sd[:, :c]), axis=1)
-    cos_cone = 1.0 / math.sqrt(1.0 + w.mu**2)
-    alignment = -np.sum(normals[:, :c] * m[:, :c], axis=-1)
-    cone = np.sum(cw * np.maximum(cos_cone - alignment, 0.0) ** 2, axis=1)
-    force = np.einsum("nc,nci->ni", cw, normals[:, :c])
-    torque = np.einsum("nc,nci->ni", cw, np.cross(points[:, :c], normals[:, :c])) / obj.torque_length
-    fc = np.sum(force**2, axis=1) + np.sum(torque**2, axis=1)
-    q = x[:, POSE_PARAMS:]
-    joint = np.sum(
-        np.maximum(q - layout.joint_upper, 0.0) ** 2 + np.maximum(layout.joint_lower - q, 0.0) ** 2, axis=1
-    )
-    terms = {"fc": fc, "cone": cone, "dist": dist, "pen": pen, "joint": joint}
-    terms["energy"] = sum(wt * terms[name] for wt, name in zip(w.as_tuple(), TERM_NAMES, strict=True))
-    return terms

@@ -80,6 +80,53 @@ def _normalized(q: float, lo: float, hi: float) -> float:
     return 2.0 * (q - lo) / (hi - lo) - 1.0
 
 
+@wp.func
+def _privileged_group(
+    prm: ObservationParams,
+    world: WorldArrays,
+    w: int,
+    num_pads: int,
+    pad_force_true: wp.array2d(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    friction: wp.array(dtype=float),
+    log_e: wp.array(dtype=float),
+    privileged: wp.array2d(dtype=float),
+):
+    """World ``w``'s row of the privileged group (the critic's), in the order of the module docstring."""
+    pos, rot, lin, ang = object_state(world, w)
+    eps, sigma, _nodes = soft_strain(world, w)
+    palm = wp.transform_get_translation(world.body_q[world.palm_body[w]])
+    o = int(0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
+    rel = pos - palm
+    for k in range(3):
+        privileged[w, o] = finite(rel[k] * prm.object_offset_scale)
+        o += 1
+    for k in range(4):
+        privileged[w, o] = finite(rot[k])
+        o += 1
+    for k in range(3):
+        privileged[w, o] = finite(lin[k])
+        o += 1
+    for k in range(3):
+        privileged[w, o] = finite(prm.object_ang_vel_scale * ang[k])
+        o += 1
+    for i in range(world.link_bodies.shape[1]):
+        d = wp.transform_get_translation(world.body_q[world.link_bodies[w, i]]) - pos
+        privileged[w, o] = finite(wp.length(d) * prm.link_distance_scale)
+        o += 1
+    privileged[w, o] = finite(eps)
+    privileged[w, o + 1] = finite(sigma * prm.sigma_scale)
+    privileged[w, o + 2] = finite(mass[w])
+    privileged[w, o + 3] = finite(friction[w])
+    privileged[w, o + 4] = finite(log_e[w] / prm.log_youngs_per_unit)
+    o += 5
+    for p in range(num_pads):
+        f = pad_force_true[w, p]
+        for k in range(3):
+            privileged[w, o] = finite(finite(f[k]) / prm.pad_force_per_unit)
+            o += 1
+
+
 @wp.kernel
 def _observation_kernel(
     prm: ObservationParams,
@@ -156,38 +203,7 @@ def _observation_kernel(
             o += 1
 
     # The privileged group.
-    pos, rot, lin, ang = object_state(world, w)
-    eps, sigma, _nodes = soft_strain(world, w)
-    palm = wp.transform_get_translation(world.body_q[world.palm_body[w]])
-    o = int(0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
-    rel = pos - palm
-    for k in range(3):
-        privileged[w, o] = finite(rel[k] * prm.object_offset_scale)
-        o += 1
-    for k in range(4):
-        privileged[w, o] = finite(rot[k])
-        o += 1
-    for k in range(3):
-        privileged[w, o] = finite(lin[k])
-        o += 1
-    for k in range(3):
-        privileged[w, o] = finite(prm.object_ang_vel_scale * ang[k])
-        o += 1
-    for i in range(world.link_bodies.shape[1]):
-        d = wp.transform_get_translation(world.body_q[world.link_bodies[w, i]]) - pos
-        privileged[w, o] = finite(wp.length(d) * prm.link_distance_scale)
-        o += 1
-    privileged[w, o] = finite(eps)
-    privileged[w, o + 1] = finite(sigma * prm.sigma_scale)
-    privileged[w, o + 2] = finite(mass[w])
-    privileged[w, o + 3] = finite(friction[w])
-    privileged[w, o + 4] = finite(log_e[w] / prm.log_youngs_per_unit)
-    o += 5
-    for p in range(num_pads):
-        f = pad_force_true[w, p]
-        for k in range(3):
-            privileged[w, o] = finite(finite(f[k]) / prm.pad_force_per_unit)
-            o += 1
+    _privileged_group(prm, world, w, num_pads, pad_force_true, mass, friction, log_e, privileged)
 
 
 def compute_observations(

@@ -189,6 +189,61 @@ def _first_failure(failure: wp.array(dtype=wp.int32), w: int, code: int):
         failure[w] = code
 
 
+@wp.func
+def _pads_show_grasp(
+    pad_force_object: wp.array2d(dtype=wp.vec3), pad_role: wp.array(dtype=wp.int32), w: int
+) -> bool:
+    """Whether world ``w``'s pads show a grasp: a thumb pad and an opposing finger pad each touch the
+    object (more than ``GRASP_CONTACT_FORCE`` from it)."""
+    thumb = bool(False)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
+    opposing = bool(False)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
+    for p in range(pad_force_object.shape[1]):
+        if wp.length(pad_force_object[w, p]) > GRASP_CONTACT_FORCE:
+            if pad_role[p] == PAD_THUMB:
+                thumb = True
+            if pad_role[p] == PAD_OPPOSING:
+                opposing = True
+    return thumb and opposing
+
+
+@wp.func
+def _terminations(
+    prm: ScoreParams,
+    w: int,
+    t: int,
+    pos: wp.vec3,
+    rise: float,
+    object_start: wp.array(dtype=wp.vec3),
+    pad_force_true: wp.array2d(dtype=wp.vec3),
+    finite: wp.array(dtype=wp.bool),
+    failure: wp.array(dtype=wp.int32),
+    nonfinite_count: wp.array(dtype=wp.int32),
+    done: wp.array(dtype=wp.bool),
+):
+    """World ``w``'s terminations at step ``t`` (module docstring): their failure causes and ``done``."""
+    d = wp.vec2(pos[0] - object_start[w][0], pos[1] - object_start[w][1])
+    pushed_off = wp.length(d) > PUSHED_OFF_DISTANCE
+    dropped = t > prm.hold_start and rise < 0.5 * prm.lift_height
+    # The largest pad force over the limit (a NaN among them makes the largest NaN: no blow-up).
+    largest = float(0.0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
+    for p in range(pad_force_true.shape[1]):
+        largest = _nan_max(largest, wp.length(pad_force_true[w, p]))
+    blowup = largest > BLOWUP_PAD_FORCE
+    nonfinite = not finite[w]
+    ended = t >= prm.max_episode_length
+    if nonfinite:
+        wp.atomic_add(nonfinite_count, 0, 1)
+        failure[w] = NON_FINITE  # overrides: a broken simulation scores nothing
+    if blowup:
+        _first_failure(failure, w, BLOWUP)
+    if pushed_off:
+        _first_failure(failure, w, PUSHED_OFF)
+    if prm.eval_mode != 0:
+        done[w] = nonfinite or ended
+    else:
+        done[w] = pushed_off or dropped or blowup or nonfinite or ended
+
+
 @wp.kernel
 def _score_kernel(
     prm: ScoreParams,
@@ -224,16 +279,7 @@ def _score_kernel(
     w = wp.tid()
     t = int(t_step[w])
     row = wp.clamp(t, 0, prm.max_episode_length + 1)
-    # The pads touching the object and whether they show a grasp.
-    thumb = bool(False)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
-    opposing = bool(False)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
-    for p in range(pad_force_object.shape[1]):
-        if wp.length(pad_force_object[w, p]) > GRASP_CONTACT_FORCE:
-            if pad_role[p] == PAD_THUMB:
-                thumb = True
-            if pad_role[p] == PAD_OPPOSING:
-                opposing = True
-    grasp = thumb and opposing
+    grasp = _pads_show_grasp(pad_force_object, pad_role, w)
 
     # Touch-timed lift.
     start = int(lift_start[w])
@@ -290,27 +336,7 @@ def _score_kernel(
             disturb_ok[w] = False
 
     # Terminations.
-    d = wp.vec2(pos[0] - object_start[w][0], pos[1] - object_start[w][1])
-    pushed_off = wp.length(d) > PUSHED_OFF_DISTANCE
-    dropped = t > prm.hold_start and rise < 0.5 * prm.lift_height
-    # The largest pad force over the limit (a NaN among them makes the largest NaN: no blow-up).
-    largest = float(0.0)  # noqa: UP018  (a typed variable: Warp mutates no literal in a loop)
-    for p in range(pad_force_true.shape[1]):
-        largest = _nan_max(largest, wp.length(pad_force_true[w, p]))
-    blowup = largest > BLOWUP_PAD_FORCE
-    nonfinite = not finite[w]
-    ended = t >= prm.max_episode_length
-    if nonfinite:
-        wp.atomic_add(nonfinite_count, 0, 1)
-        failure[w] = NON_FINITE  # overrides: a broken simulation scores nothing
-    if blowup:
-        _first_failure(failure, w, BLOWUP)
-    if pushed_off:
-        _first_failure(failure, w, PUSHED_OFF)
-    if prm.eval_mode != 0:
-        done[w] = nonfinite or ended
-    else:
-        done[w] = pushed_off or dropped or blowup or nonfinite or ended
+    _terminations(prm, w, t, pos, rise, object_start, pad_force_true, finite, failure, nonfinite_count, done)
 
 
 def score_step(prm: ScoreParams, sched: ScoreSchedule, inp: ScoreInputs, state: ScoreState) -> None:

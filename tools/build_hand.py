@@ -11,7 +11,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from d3grasp.authoring.hand import HandPhysics, load_spec, write_hand_usd
+from d3grasp.authoring.hand_spec import HandPhysics, load_spec
+from d3grasp.authoring.hand_usd import write_hand_usd
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "assets_usd" / "hands" / "dexhand13.usda"

@@ -42,7 +42,7 @@ GRAVITY = 9.81
 
 def _spec_effort() -> np.ndarray:
     """(16,) effort limits of the finger joints in the policy's order, from the hand's spec."""
-    from d3grasp.authoring.hand import load_spec
+    from d3grasp.authoring.hand_spec import load_spec
     from d3grasp.dexhand13 import FINGER_JOINT_NAMES
 
     spec = load_spec()

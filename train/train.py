@@ -178,21 +178,9 @@ def rank_env_settings(
     return per_rank[dist.rank], math.gcd(*per_rank), overrides
 
 
-def run_training(
-    args: argparse.Namespace,
-    argv: Sequence[str] = (),
-    work: Callable[[D3GraspRunner], None] | None = None,
-) -> D3GraspRunner:
-    """Train as ``args`` (``make_train_parser()``'s flags) say; returns the runner (its ``log_dir``
-    is the run folder on rank 0 and None on other ranks; its environment is closed).
-
-    ``work``: instead of training, call ``work(runner)`` on the runner built and loaded as training
-    would build it, with no run folder (measurements at a checkpoint: d3grasp.train.gradient_noise)."""
-    dist = DistInfo.from_env()
-    get_task(args.task)  # unknown task -> UnknownTaskError before anything is built
-    device = resolve_device(args.device, dist)
-    torch.set_num_threads(resolve_torch_threads(args.torch_threads))
-
+def _agent_cfg(args: argparse.Namespace) -> dict[str, Any]:
+    """The task's agent (rsl-rl) config with the flags' changes: iterations, logger, ``--agent``
+    values and a distillation teacher."""
     overrides: dict[str, Any] = {"logger": args.logger, "run_name": args.run_name}
     for key in (
         "max_iterations",
@@ -217,6 +205,38 @@ def run_training(
         set_cfg_value(train_cfg, dotted, value)
     if getattr(args, "distill", None):
         train_cfg["distillation"]["teacher"] = args.distill
+    return train_cfg
+
+
+def _new_log_dir(experiment_dir: Path, run_name: str | None) -> Path:
+    """Create this run's folder, ``<experiment_dir>/<YYYY-mm-dd_HH-MM-SS>[_<run_name>]``."""
+    stamp = datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    name = stamp + (f"_{run_name}" if run_name else "")
+    log_dir = experiment_dir / name
+    suffix = 1
+    while log_dir.exists():  # two runs in the same second
+        log_dir = experiment_dir / f"{name}-{suffix}"
+        suffix += 1
+    log_dir.mkdir(parents=True)
+    return log_dir
+
+
+def run_training(
+    args: argparse.Namespace,
+    argv: Sequence[str] = (),
+    work: Callable[[D3GraspRunner], None] | None = None,
+) -> D3GraspRunner:
+    """Train as ``args`` (``make_train_parser()``'s flags) say; returns the runner (its ``log_dir``
+    is the run folder on rank 0 and None on other ranks; its environment is closed).
+
+    ``work``: instead of training, call ``work(runner)`` on the runner built and loaded as training
+    would build it, with no run folder (measurements at a checkpoint: d3grasp.train.gradient_noise)."""
+    dist = DistInfo.from_env()
+    get_task(args.task)  # unknown task -> UnknownTaskError before anything is built
+    device = resolve_device(args.device, dist)
+    torch.set_num_threads(resolve_torch_threads(args.torch_threads))
+
+    train_cfg = _agent_cfg(args)
 
     experiment_dir = Path(args.log_root) / train_cfg["experiment_name"]
     resume_path = resume_checkpoint(experiment_dir, args.load_run, args.checkpoint) if args.resume else None
@@ -242,14 +262,7 @@ def run_training(
 
         log_dir: Path | None = None
         if dist.rank == 0 and work is None:
-            stamp = datetime.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-            name = stamp + (f"_{args.run_name}" if args.run_name else "")
-            log_dir = experiment_dir / name
-            suffix = 1
-            while log_dir.exists():  # two runs in the same second
-                log_dir = experiment_dir / f"{name}-{suffix}"
-                suffix += 1
-            log_dir.mkdir(parents=True)
+            log_dir = _new_log_dir(experiment_dir, args.run_name)
             print(f"[d3grasp] logging to {log_dir}")
 
         runner_class = D3GraspRunner

@@ -290,6 +290,74 @@ class ImportResult:
     replaced: list[AssetEntry] = field(default_factory=list)  # the old entries the new ones replaced
 
 
+def _check_soft_options(youngs_modulus: float, poissons_ratio: float, target_tets: int) -> None:
+    """Refuse soft-body material and tet-count options out of range."""
+    if not (youngs_modulus > 0 and np.isfinite(youngs_modulus)):
+        raise ValueError(f"Young's modulus must be positive, got {youngs_modulus}")
+    if not (-1.0 < poissons_ratio < 0.5):
+        raise ValueError(f"Poisson's ratio must be in (-1, 0.5), got {poissons_ratio}")
+    from d3grasp.authoring.tetmesh import MAX_TETS, MIN_TETS
+
+    if not (MIN_TETS <= target_tets <= MAX_TETS):
+        raise ValueError(f"--target-tets must be in [{MIN_TETS}, {MAX_TETS}], got {target_tets}")
+
+
+def _material(deformable: bool, density: float | None, friction: float | None) -> tuple[float, float]:
+    """The density and friction to author: the given ones, checked, or the kind's defaults."""
+    rho = density if density is not None else (DEFAULT_SOFT_DENSITY if deformable else DEFAULT_RIGID_DENSITY)
+    if not (np.isfinite(rho) and rho > 0):
+        raise ValueError(f"density must be positive, got {rho}")
+    mu = friction
+    if mu is None:
+        mu = DEFAULT_SOFT_FRICTION if deformable else DEFAULT_RIGID_FRICTION
+    if not (np.isfinite(mu) and mu >= 0):
+        raise ValueError(f"friction must be non-negative, got {mu}")
+    return rho, mu
+
+
+def _author_all(
+    items: list[tuple[Path, str, trimesh.Trimesh]],
+    tmp: Path,
+    opts: dict[str, Any],
+    workers: int,
+    progress: Callable[[Iterable[Any]], Iterable[Any]] | None,
+) -> dict[int, AssetEntry | str]:
+    """Author every checked mesh into ``tmp``: per item index, its entry or why it was refused."""
+    units = [(p, aid, mesh, tmp, opts) for p, aid, mesh in items]
+    authored: dict[int, AssetEntry | str] = {}
+    bar = iter(progress(items)) if progress else None
+    if bar is not None:
+        next(bar, None)  # show the bar at 0 before the first (slow) mesh
+
+    def done(k: int, result: AssetEntry | str) -> None:
+        authored[k] = result
+        if bar is not None:
+            next(bar, None)
+
+    # coacd (minutes for a many-part shape) and tet meshing are per mesh and independent: one
+    # process per core; each mesh's asset is the same whichever process authored it.
+    run_units(_author_one, units, workers, done)
+    return authored
+
+
+def _move_into_place(
+    tmp: Path, out_dir: Path, manifest_path: Path, existing: list[AssetEntry], entries: list[AssetEntry]
+) -> list[AssetEntry]:
+    """Move the authored files from ``tmp`` into ``out_dir``, then write the merged manifest
+    (atomically); the existing entries the new ones replaced."""
+    for e in entries:
+        dst = out_dir / e.path
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(tmp / e.path, dst)
+    by_id = {e.id: e for e in entries}
+    replaced = [old for old in existing if old.id in by_id]
+    write_manifest(manifest_path, [e for e in existing if e.id not in by_id] + entries)
+    for old in replaced:  # a kind change leaves the old file in the other kind's folder
+        if old.path != by_id[old.id].path:
+            (out_dir / old.path).unlink(missing_ok=True)
+    return replaced
+
+
 def import_meshes(
     paths: Iterable[str | Path],
     out_dir: str | Path,
@@ -325,24 +393,8 @@ def import_meshes(
     if not (np.isfinite(scale) and scale > 0):
         raise ValueError(f"--scale must be a positive number, got {scale}")
     if deformable:
-        if not (youngs_modulus > 0 and np.isfinite(youngs_modulus)):
-            raise ValueError(f"Young's modulus must be positive, got {youngs_modulus}")
-        if not (-1.0 < poissons_ratio < 0.5):
-            raise ValueError(f"Poisson's ratio must be in (-1, 0.5), got {poissons_ratio}")
-        from d3grasp.authoring.tetmesh import MAX_TETS, MIN_TETS
-
-        if not (MIN_TETS <= target_tets <= MAX_TETS):
-            raise ValueError(f"--target-tets must be in [{MIN_TETS}, {MAX_TETS}], got {target_tets}")
-    rho = density if density is not None else (DEFAULT_SOFT_DENSITY if deformable else DEFAULT_RIGID_DENSITY)
-    if not (np.isfinite(rho) and rho > 0):
-        raise ValueError(f"density must be positive, got {rho}")
-    mu = (
-        friction
-        if friction is not None
-        else (DEFAULT_SOFT_FRICTION if deformable else DEFAULT_RIGID_FRICTION)
-    )
-    if not (np.isfinite(mu) and mu >= 0):
-        raise ValueError(f"friction must be non-negative, got {mu}")
+        _check_soft_options(youngs_modulus, poissons_ratio, target_tets)
+    rho, mu = _material(deformable, density, friction)
 
     out_dir = Path(out_dir)
     manifest_path = out_dir / "manifest.json"
@@ -378,20 +430,7 @@ def import_meshes(
             "target_tets": target_tets,
             "scale": scale,
         }
-        units = [(p, aid, mesh, tmp, opts) for p, aid, mesh in items]
-        authored: dict[int, AssetEntry | str] = {}
-        bar = iter(progress(items)) if progress else None
-        if bar is not None:
-            next(bar, None)  # show the bar at 0 before the first (slow) mesh
-
-        def done(k: int, result: AssetEntry | str) -> None:
-            authored[k] = result
-            if bar is not None:
-                next(bar, None)
-
-        # coacd (minutes for a many-part shape) and tet meshing are per mesh and independent: one
-        # process per core; each mesh's asset is the same whichever process authored it.
-        run_units(_author_one, units, workers, done)
+        authored = _author_all(items, tmp, opts, workers, progress)
         entries: list[AssetEntry] = []
         for k, (p, _aid, _mesh) in enumerate(items):
             result = authored[k]
@@ -403,16 +442,7 @@ def import_meshes(
             reasons = "; ".join(f"{p.name}: {why}" for p, why in skipped[:3])
             raise MeshError(f"{out_dir}: none of the {len(paths)} meshes could be imported ({reasons})")
         # 3) Move into place, then write the merged manifest (atomically).
-        for e in entries:
-            dst = out_dir / e.path
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(tmp / e.path, dst)
-        by_id = {e.id: e for e in entries}
-        replaced = [old for old in existing if old.id in by_id]
-        write_manifest(manifest_path, [e for e in existing if e.id not in by_id] + entries)
-        for old in replaced:  # a kind change leaves the old file in the other kind's folder
-            if old.path != by_id[old.id].path:
-                (out_dir / old.path).unlink(missing_ok=True)
+        replaced = _move_into_place(tmp, out_dir, manifest_path, existing, entries)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return ImportResult(entries=entries, skipped=skipped, replaced=replaced)

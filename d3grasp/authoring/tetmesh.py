@@ -293,6 +293,54 @@ def _meshing_advice(failures: list[str], target_tets: int, max_tets: int) -> str
     return f"simplify the surface or change --target-tets (now {target_tets})"
 
 
+def _envelope(work: trimesh.Trimesh) -> tuple[float, float]:
+    """fTetWild's first envelope (``epsilon``, in bounding-box diagonals) for a surface, and its bound."""
+    # fTetWild's envelope (epsilon x diagonal) kept within an eighth of the body's thickness: on a
+    # 12 x 2 x 0.4 cm bar an envelope of a quarter of the thickness or more (eps >= 0.008) gave no
+    # tets or crashed fTetWild at every edge from 0.02 to 0.05 diagonals, and the envelope used to be
+    # doubled after each empty mesh; at eps <= 0.006 every edge meshed (measured). A compact body's
+    # bound (~0.07 for a ball or a cube) is above any envelope used here. The envelopes stay those of
+    # 0.01 halved and doubled, as for every other body: a 12 cm x 3 mm rod meshed at 0.01 / 8 (1,633
+    # tets); started at its bound of 0.0031 instead, no attempt passed (at 0.0016 it lost 5% of its
+    # volume).
+    diag = float(np.linalg.norm(work.extents))
+    max_epsilon = thickness(work) / (8.0 * diag)
+    epsilon = 1e-2
+    while epsilon > max_epsilon and epsilon > 1e-6:
+        epsilon /= 2.0
+    return epsilon, max_epsilon
+
+
+def _attempt(
+    work: trimesh.Trimesh, attempt: int, edge: float, epsilon: float
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """One fTetWild run at ``edge`` and ``epsilon``: its points, its tets (none when fTetWild
+    crashed) and the attempt's log line."""
+    msg = f"attempt {attempt}: edge {edge:.3f} x diag, eps {epsilon:.1e}"
+    try:
+        pts, tets = _run_ftetwild(work.vertices, work.faces, edge, epsilon)
+    except MesherCrash as exc:
+        pts, tets, msg = np.empty((0, 3)), np.empty((0, 4), dtype=np.int64), f"{msg}: {exc}"
+    return pts, tets, f"{msg} -> {len(tets)} tets"
+
+
+def _next_edge(
+    edge: float, n: int, target_tets: int, too_fine: float, too_coarse: float
+) -> tuple[float, float, float]:
+    """The edge length to try after a mesh of ``n`` tets at ``edge``, and the updated bracket of
+    edges known to give too many (``too_fine``) and too few (``too_coarse``) tets."""
+    # Bracket the target, then bisect in log space: the count is a noisy, step-like
+    # function of the edge length (fTetWild snaps to the surface), so a secant step alone
+    # can oscillate.
+    if n > target_tets:
+        too_fine = max(too_fine, edge)
+    else:
+        too_coarse = min(too_coarse, edge)
+    if too_fine > 0.0 and too_coarse < math.inf:
+        return math.sqrt(too_fine * too_coarse), too_fine, too_coarse
+    return edge * (n / target_tets) ** (1.0 / 1.5), too_fine, too_coarse
+
+
 def tetrahedralize(
     mesh: trimesh.Trimesh,
     target_tets: int = 800,
@@ -335,31 +383,14 @@ def tetrahedralize(
     # Measured on spheres, capsules and boxes (eps 1e-2, coarsening on): an ideal edge of ~0.12
     # bounding-box diagonals gives a few hundred tets, and T falls roughly like edge^-1.3.
     edge = 0.12
-    # fTetWild's envelope (epsilon x diagonal) kept within an eighth of the body's thickness: on a
-    # 12 x 2 x 0.4 cm bar an envelope of a quarter of the thickness or more (eps >= 0.008) gave no
-    # tets or crashed fTetWild at every edge from 0.02 to 0.05 diagonals, and the envelope used to be
-    # doubled after each empty mesh; at eps <= 0.006 every edge meshed (measured). A compact body's
-    # bound (~0.07 for a ball or a cube) is above any envelope used here. The envelopes stay those of
-    # 0.01 halved and doubled, as for every other body: a 12 cm x 3 mm rod meshed at 0.01 / 8 (1,633
-    # tets); started at its bound of 0.0031 instead, no attempt passed (at 0.0016 it lost 5% of its
-    # volume).
-    diag = float(np.linalg.norm(work.extents))
-    max_epsilon = thickness(work) / (8.0 * diag)
-    epsilon = 1e-2
-    while epsilon > max_epsilon and epsilon > 1e-6:
-        epsilon /= 2.0
+    epsilon, max_epsilon = _envelope(work)
     too_fine, too_coarse = 0.0, math.inf
     best: tuple[float, np.ndarray, np.ndarray] | None = None
     failures: list[str] = []
     for attempt in range(max_attempts):
         edge = float(np.clip(edge, 0.01, 0.9))
-        msg = f"attempt {attempt}: edge {edge:.3f} x diag, eps {epsilon:.1e}"
-        try:
-            pts, tets = _run_ftetwild(work.vertices, work.faces, edge, epsilon)
-        except MesherCrash as exc:
-            pts, tets, msg = np.empty((0, 3)), np.empty((0, 4), dtype=np.int64), f"{msg}: {exc}"
+        pts, tets, msg = _attempt(work, attempt, edge, epsilon)
         n = len(tets)
-        msg = f"{msg} -> {n} tets"
         if n == 0:
             failures.append(msg)
             if log:
@@ -391,17 +422,7 @@ def tetrahedralize(
             best = (err, pts, tets)
         if best is not None and best[0] <= math.log1p(rel_tolerance):
             break
-        # Bracket the target, then bisect in log space: the count is a noisy, step-like
-        # function of the edge length (fTetWild snaps to the surface), so a secant step alone
-        # can oscillate.
-        if n > target_tets:
-            too_fine = max(too_fine, edge)
-        else:
-            too_coarse = min(too_coarse, edge)
-        if too_fine > 0.0 and too_coarse < math.inf:
-            edge = math.sqrt(too_fine * too_coarse)
-        else:
-            edge *= (n / target_tets) ** (1.0 / 1.5)
+        edge, too_fine, too_coarse = _next_edge(edge, n, target_tets, too_fine, too_coarse)
         if n > target_tets and edge >= 0.9:
             epsilon = min(2.0 * epsilon, max(max_epsilon, epsilon))  # surface detail dominates: simplify more
     if best is None:

@@ -22,8 +22,8 @@ import newton
 import numpy as np
 import warp as wp
 
-from d3grasp.authoring import hand as hand_def
-from d3grasp.authoring.hand import HandIndices
+from d3grasp.authoring.hand_newton import HandIndices, add_hand
+from d3grasp.authoring.hand_spec import palm_pose_to_root_q
 from d3grasp.authoring.manifest import AssetEntry, read_manifest
 from d3grasp.dexhand13 import LINK_NAMES
 from d3grasp.envs.config import ObjectSetConfig
@@ -47,7 +47,7 @@ def palm_world_pose_to_free_q(pos: np.ndarray, quat_xyzw: np.ndarray) -> np.ndar
 def palm_world_pose_to_root_q(pos: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
     """Root joint coordinates (6,) that put the palm at a world pose (the anchor sits at the origin)."""
     r_world = quat_xyzw_to_matrix(quat_xyzw)
-    return hand_def.palm_pose_to_root_q(
+    return palm_pose_to_root_q(
         _ANCHOR_R.T @ np.asarray(pos, dtype=np.float64), matrix_to_quat_xyzw_nonneg_w(_ANCHOR_R.T @ r_world)
     )
 
@@ -95,7 +95,7 @@ def build_scene(
     """Build and finalize one model with a world per (asset entry, USD path).
 
     Objects are loaded at the origin in their rest frame; the environment places them on reset.
-    ``kinematic_palm`` loads the hand without its root chain (see :func:`hand_def.add_hand`).
+    ``kinematic_palm`` loads the hand without its root chain (see :func:`add_hand`).
 
     The hand's USD and each distinct object's are parsed once, into a template builder, and copied
     into every world that holds them (``ModelBuilder.add_builder``): parsing the hand took 0.2 s a
@@ -120,7 +120,7 @@ def build_scene(
         else wp.transform(wp.vec3(0.0, 0.0, 0.0), wp.quat(*HAND_ANCHOR_QUAT))
     )
     hand_template = new_builder()
-    hand = hand_def.add_hand(hand_template, xform=anchor, kinematic_palm=kinematic_palm)
+    hand = add_hand(hand_template, xform=anchor, kinematic_palm=kinematic_palm)
     object_templates: dict[Path, newton.ModelBuilder] = {}
     rows: dict[str, list] = defaultdict(list)  # one row per world of every SceneLayout array
     for w, (entry, usd_path) in enumerate(entries):

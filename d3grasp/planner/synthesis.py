@@ -7,7 +7,7 @@ spec in ``tools/specs/`` is not installed, so it is only an alternative source f
 (:func:`hand_kinematics_from_spec`; the tests check both agree).
 
 Contact points: each pad's outer face centre (the pad box's ``+z`` face in the pad frame, whose
-``+z`` is the outward sensing normal, ``d3grasp.authoring.hand.PAD_NORMAL_AXIS``), and a 3 x 3 grid on
+``+z`` is the outward sensing normal, ``d3grasp.authoring.hand_spec.PAD_NORMAL_AXIS``), and a 3 x 3 grid on
 the palm collider's palmar face (``+z``), its centre first. Which of them take part in the
 force-closure and distance terms depends on the grasp type (:data:`CONTACT_SETS`): a pinch holds the
 object between the index and thumb tips, the top hook and the side wrap between the three finger
@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from d3grasp.authoring.hand import (
+from d3grasp.authoring.hand_spec import (
     HAND_PRIM,
     LINK_COLLIDER,
     PAD_COLLIDER,
@@ -47,13 +47,13 @@ from d3grasp.dexhand13 import (
 )
 from d3grasp.envs.grasps import DROP_GAP, ObjectGrasp, object_grasp, rest_height
 from d3grasp.geometry import matrix_to_quat_xyzw_nonneg_w, quat_xyzw_to_matrix, rot_z, rpy_matrix
-from d3grasp.kernels.grasp_energy import (
+from d3grasp.kernels.grasp_descent import descend
+from d3grasp.kernels.grasp_energy_inputs import (
     POSE_PARAMS,
     TERM_NAMES,
     EnergyWeights,
     HandLayout,
     ObjectShape,
-    descend,
 )
 from d3grasp.vocabulary import GRASP_TYPES
 

@@ -1,7 +1,7 @@
 """The DexHand13 USD: structure, read-back of limits/drives/masses, FK against an independent NumPy FK.
 
 The reference FK below is written from the spec's URDF convention (child = parent · T(xyz) · Rz·Ry·Rx ·
-Rz(q)) and shares no code with ``d3grasp.authoring.hand``.
+Rz(q)) and shares no code with ``d3grasp.authoring.hand_spec`` or the hand's writer and loader.
 """
 
 from __future__ import annotations
@@ -15,7 +15,25 @@ import numpy as np
 import pytest
 import warp as wp
 
-from d3grasp.authoring import hand as H
+from d3grasp.authoring.hand_newton import add_hand
+from d3grasp.authoring.hand_spec import (
+    PAD_COLLIDER,
+    PAD_NORMAL_AXIS,
+    PAD_NORMAL_SIGN,
+    PALM_NORMAL,
+    HandPhysics,
+    load_spec,
+    palm_pose_to_root_q,
+)
+from d3grasp.authoring.hand_usd import write_hand_usd
+from d3grasp.dexhand13 import (
+    FINGER_JOINT_NAMES,
+    LINK_NAMES,
+    PAD_NAMES,
+    ROOT_JOINT_NAMES,
+    pad_finger,
+    pad_groups,
+)
 from d3grasp.geometry import matrix_to_quat_xyzw_nonneg_w
 
 REPO = Path(__file__).resolve().parents[2]
@@ -115,7 +133,7 @@ def _index(labels, suffix: str) -> int:
 
 def test_committed_usd_is_current(tmp_path, assert_usda_matches):
     """The committed asset is what the authoring code writes from the spec (up to round-off)."""
-    out = H.write_hand_usd(tmp_path / "hand.usda", H.load_spec(SPEC_PATH), H.HandPhysics())
+    out = write_hand_usd(tmp_path / "hand.usda", load_spec(SPEC_PATH), HandPhysics())
     assert_usda_matches(out.read_text(), HAND_USD.read_text(), "run: python tools/build_hand.py")
 
 
@@ -140,27 +158,27 @@ def test_authored_hand_ignores_last_digit_differences(tmp_path):
     nudged = tmp_path / "nudged.json"
     nudged.write_text(json.dumps(_nudged(raw, count)))
     assert count[0] > 100  # the spec's figures really were moved
-    a = H.write_hand_usd(tmp_path / "a.usda", H.load_spec(SPEC_PATH), H.HandPhysics())
-    b = H.write_hand_usd(tmp_path / "b.usda", H.load_spec(nudged), H.HandPhysics())
+    a = write_hand_usd(tmp_path / "a.usda", load_spec(SPEC_PATH), HandPhysics())
+    b = write_hand_usd(tmp_path / "b.usda", load_spec(nudged), HandPhysics())
     assert a.read_bytes() == b.read_bytes()
 
 
 def test_names_and_groups(spec):
-    assert len(H.FINGER_JOINT_NAMES) == 16 and len(set(H.FINGER_JOINT_NAMES)) == 16
-    assert sorted(H.FINGER_JOINT_NAMES) == sorted(j["name"] for j in spec["joints"])
-    assert len(H.PAD_NAMES) == 11
-    assert sorted(H.PAD_NAMES) == sorted(p["child"] for p in spec["tactile_pads"])
-    assert H.pad_finger("right_thumb_tactile_link_1") == "thumb"
-    assert H.pad_finger(0) == "index"
-    assert H.pad_groups() == {"thumb": [9, 10], "fingers": list(range(9))}
+    assert len(FINGER_JOINT_NAMES) == 16 and len(set(FINGER_JOINT_NAMES)) == 16
+    assert sorted(FINGER_JOINT_NAMES) == sorted(j["name"] for j in spec["joints"])
+    assert len(PAD_NAMES) == 11
+    assert sorted(PAD_NAMES) == sorted(p["child"] for p in spec["tactile_pads"])
+    assert pad_finger("right_thumb_tactile_link_1") == "thumb"
+    assert pad_finger(0) == "index"
+    assert pad_groups() == {"thumb": [9, 10], "fingers": list(range(9))}
     with pytest.raises(ValueError):
-        H.pad_finger("left_index_tactile_link_0")
+        pad_finger("left_index_tactile_link_0")
 
 
 def test_structure_limits_drives_masses(plain_builder, spec):
     b = plain_builder
     assert b.joint_count == 22 and b.joint_dof_count == 22  # 16 finger + 6 root
-    phys = H.HandPhysics()
+    phys = HandPhysics()
     for j in spec["joints"]:
         ji = _index(b.joint_label, f"/joints/{j['name']}")
         assert b.joint_type[ji] == newton.JointType.REVOLUTE
@@ -174,7 +192,7 @@ def test_structure_limits_drives_masses(plain_builder, spec):
         assert b.body_label[b.joint_child[ji]].endswith("/" + j["child"])
     kinds = [newton.JointType.PRISMATIC] * 3 + [newton.JointType.REVOLUTE] * 3
     axes = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (0, 0, 1), (0, 1, 0), (1, 0, 0)]
-    for i, name in enumerate(H.ROOT_JOINT_NAMES):
+    for i, name in enumerate(ROOT_JOINT_NAMES):
         ji = _index(b.joint_label, f"/joints/{name}")
         dof = b.joint_qd_start[ji]
         assert b.joint_type[ji] == kinds[i]
@@ -185,7 +203,7 @@ def test_structure_limits_drives_masses(plain_builder, spec):
     palm = _index(b.body_label, "/right_palm_link")
     assert b.joint_child[_index(b.joint_label, "/joints/root_rx")] == palm
 
-    total = sum(b.body_mass[_index(b.body_label, "/" + n)] for n in H.LINK_NAMES)
+    total = sum(b.body_mass[_index(b.body_label, "/" + n)] for n in LINK_NAMES)
     assert total == pytest.approx(phys.total_mass(), rel=1e-6)
     assert 0.9 < total < 1.3  # a ~1 kg class hand, not the 0.19 kg CAD shells
     # Inertia of the palm = solid box of its mass filling the spec box.
@@ -202,7 +220,7 @@ def test_structure_limits_drives_masses(plain_builder, spec):
 
     # 11 pad colliders, each on the spec's parent link, a box the size of the spec's pad box.
     for p in spec["tactile_pads"]:
-        s = _index(b.shape_label, f"/{p['child']}/{H.PAD_COLLIDER}")
+        s = _index(b.shape_label, f"/{p['child']}/{PAD_COLLIDER}")
         assert b.shape_type[s] == newton.GeoType.BOX
         assert b.body_label[b.shape_body[s]].endswith("/" + p["parent"])
         size = np.subtract(spec["links"][p["child"]]["box_max"], spec["links"][p["child"]]["box_min"])
@@ -224,14 +242,14 @@ def test_self_collision_filtered(plain_builder):
 def test_add_hand_indices():
     b = newton.ModelBuilder()
     b.add_ground_plane()  # something before the hand, so ranges must be offset correctly
-    first = H.add_hand(b, HAND_USD)
-    second = H.add_hand(b, HAND_USD)
+    first = add_hand(b, HAND_USD)
+    second = add_hand(b, HAND_USD)
     for idx in (first, second):
         assert len(idx.finger_q) == 16 and len(idx.root_q) == 6 and len(idx.pad_shapes) == 11
-        for k, name in enumerate(H.FINGER_JOINT_NAMES):
+        for k, name in enumerate(FINGER_JOINT_NAMES):
             assert b.joint_label[idx.finger_joints[k]].endswith("/" + name)
-        for k, pad in enumerate(H.PAD_NAMES):
-            assert b.shape_label[idx.pad_shapes[k]].endswith(f"/{pad}/{H.PAD_COLLIDER}")
+        for k, pad in enumerate(PAD_NAMES):
+            assert b.shape_label[idx.pad_shapes[k]].endswith(f"/{pad}/{PAD_COLLIDER}")
             assert b.shape_body[idx.pad_shapes[k]] == idx.pad_bodies[k]
     assert second.body_range[0] == first.body_range[1]
     assert set(second.pad_shapes).isdisjoint(first.pad_shapes)
@@ -244,7 +262,7 @@ def test_palm_pose_root_q_round_trip():
         r = _rot_z(rz) @ _rot_y(ry) @ _rot_x(rx)
         q = matrix_to_quat_xyzw_nonneg_w(r)
         np.testing.assert_allclose(_quat_to_rot(q), r, atol=1e-12)
-        root = H.palm_pose_to_root_q((0.1, 0.2, 0.3), q)
+        root = palm_pose_to_root_q((0.1, 0.2, 0.3), q)
         np.testing.assert_allclose(root, [0.1, 0.2, 0.3, rz, ry, rx], atol=1e-9)
 
 
@@ -256,7 +274,7 @@ def test_fk_matches_numpy(spec, seed):
     anchor_p = rng.uniform(-1, 1, 3)
     anchor_q = matrix_to_quat_xyzw_nonneg_w(anchor_r)
     builder = newton.ModelBuilder()
-    idx = H.add_hand(builder, HAND_USD, xform=wp.transform(wp.vec3(*anchor_p), wp.quat(*anchor_q)))
+    idx = add_hand(builder, HAND_USD, xform=wp.transform(wp.vec3(*anchor_p), wp.quat(*anchor_q)))
     model = builder.finalize(device="cpu")
 
     q = model.joint_q.numpy()
@@ -264,7 +282,7 @@ def test_fk_matches_numpy(spec, seed):
     for j in spec["joints"]:
         v = rng.uniform(j["lower"], j["upper"])
         finger_q[j["name"]] = v
-        q[idx.finger_q[H.FINGER_JOINT_NAMES.index(j["name"])]] = v
+        q[idx.finger_q[FINGER_JOINT_NAMES.index(j["name"])]] = v
     root = np.concatenate(
         [rng.uniform(-0.5, 0.5, 3), rng.uniform(-3, 3, 1), rng.uniform(-1.2, 1.2, 1), rng.uniform(-3, 3, 1)]
     )
@@ -276,13 +294,13 @@ def test_fk_matches_numpy(spec, seed):
 
     palm = _tf(anchor_p, anchor_r) @ _tf(root[:3], _rot_z(root[3]) @ _rot_y(root[4]) @ _rot_x(root[5]))
     ref = _reference_fk(spec, finger_q, palm)
-    for name in H.LINK_NAMES:
+    for name in LINK_NAMES:
         got = _pose(body_q[idx.link_bodies[name]])
         assert np.linalg.norm(got[:3, 3] - ref[name][:3, 3]) < 5e-4, name
         assert _rot_err(got[:3, :3], ref[name][:3, :3]) < 1e-3, name
 
     shape_tf = model.shape_transform.numpy().astype(np.float64)
-    for k, pad in enumerate(H.PAD_NAMES):
+    for k, pad in enumerate(PAD_NAMES):
         body = _pose(body_q[idx.pad_bodies[k]])
         # Pad frame from the loaded model: collider transform minus the spec box centre.
         centre = 0.5 * np.add(spec["links"][pad]["box_min"], spec["links"][pad]["box_max"])
@@ -296,9 +314,9 @@ def test_fk_matches_numpy(spec, seed):
 def test_pad_normal_faces_palmar_side(spec):
     """At rest each finger pad's +z faces the palmar side (palm +z); the thumb pads face the fingers (+x)."""
     ref = _reference_fk(spec, {j["name"]: 0.0 for j in spec["joints"]}, np.eye(4))
-    for pad in H.PAD_NAMES:
-        normal = H.PAD_NORMAL_SIGN * ref[pad][:3, H.PAD_NORMAL_AXIS]
-        toward = np.array([1.0, 0, 0]) if H.pad_finger(pad) == "thumb" else np.array(H.PALM_NORMAL)
+    for pad in PAD_NAMES:
+        normal = PAD_NORMAL_SIGN * ref[pad][:3, PAD_NORMAL_AXIS]
+        toward = np.array([1.0, 0, 0]) if pad_finger(pad) == "thumb" else np.array(PALM_NORMAL)
         assert normal @ toward > 0.95, pad
     # Flexing a finger turns its tip towards the palmar side.
     bent = _reference_fk(
@@ -316,7 +334,7 @@ def test_driven_hand_tracks_targets_with_vbd(spec):
     """
     builder = newton.ModelBuilder()
     base_z = 0.3
-    idx = H.add_hand(builder, HAND_USD, xform=wp.transform(wp.vec3(0.0, 0.0, base_z), wp.quat_identity()))
+    idx = add_hand(builder, HAND_USD, xform=wp.transform(wp.vec3(0.0, 0.0, base_z), wp.quat_identity()))
     builder.color()
     model = builder.finalize(device="cpu")
     pipeline = newton.CollisionPipeline(model, contact_matching="sticky")
@@ -330,7 +348,7 @@ def test_driven_hand_tracks_targets_with_vbd(spec):
     lo = np.array([spec["joints"][i]["lower"] for i in range(16)])
     hi = np.array([spec["joints"][i]["upper"] for i in range(16)])
     names = [j["name"] for j in spec["joints"]]
-    order = [names.index(n) for n in H.FINGER_JOINT_NAMES]
+    order = [names.index(n) for n in FINGER_JOINT_NAMES]
     goal = rng.uniform(lo, hi)[order]
     target = control.joint_target_q.numpy()
     lag = 0.0
@@ -361,4 +379,4 @@ def test_driven_hand_tracks_targets_with_vbd(spec):
     # eval_ik may return an angle 2*pi away from the target; compare on the circle.
     err = np.abs(np.angle(np.exp(1j * (q.numpy()[idx.finger_q] - goal))))
     print(f"finger joint error max {err.max():.4f} rad")
-    assert err.max() < 0.06, dict(zip(H.FINGER_JOINT_NAMES, err.round(3), strict=True))
+    assert err.max() < 0.06, dict(zip(FINGER_JOINT_NAMES, err.round(3), strict=True))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from d3grasp.authoring import hand as hand_def  # noqa: E402
+from d3grasp.authoring.hand_newton import add_hand  # noqa: E402
 from d3grasp.authoring.manifest import read_manifest, resolve_asset_path  # noqa: E402
 from d3grasp.dexhand13 import LINK_NAMES  # noqa: E402
 from d3grasp.envs.scene import HAND_ANCHOR_QUAT, build_scene  # noqa: E402
@@ -35,7 +35,7 @@ def _reference_model(entries, kinematic_palm: bool):
     hands, starts = [], []
     for w, (_, path) in enumerate(entries):
         b.begin_world(label=f"world_{w}")
-        hands.append(hand_def.add_hand(b, xform=anchor, kinematic_palm=kinematic_palm))
+        hands.append(add_hand(b, xform=anchor, kinematic_palm=kinematic_palm))
         starts.append((b.body_count, b.particle_count, b.tet_count))
         b.add_usd(str(path), xform=wp.transform_identity())
         b.end_world()

@@ -13,7 +13,7 @@ from d3grasp.kernels.fem_elasticity import (
     use_closed_form_tets,
 )
 from d3grasp.kernels.particle_iteration import use_fused_particle_iteration
-from d3grasp.kernels.strain import grid_tet_mesh
+from d3grasp.kernels.strain_numpy import grid_tet_mesh
 from newton._src.solvers.vbd import solver_vbd
 from newton._src.solvers.vbd.particle_vbd_kernels import solve_elasticity as newton_solve_elasticity
 

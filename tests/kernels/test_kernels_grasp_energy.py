@@ -9,17 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import warp as wp
-from d3grasp.kernels.grasp_energy import (
+from d3grasp.kernels.grasp_descent import descend
+from d3grasp.kernels.grasp_energy import GraspEnergy
+from d3grasp.kernels.grasp_energy_inputs import (
     POSE_PARAMS,
     TERM_NAMES,
     EnergyWeights,
-    GraspEnergy,
     HandLayout,
     ObjectShape,
-    descend,
-    reference_energy,
-    reference_points,
 )
+from d3grasp.kernels.grasp_energy_reference import reference_energy, reference_points
 
 from d3grasp.dexhand13 import FINGER_JOINT_NAMES, PAD_NAMES
 from d3grasp.planner.synthesis import (

@@ -13,7 +13,8 @@ from d3grasp.kernels.rotation import (
     reset_object_history,
     update_object_velocity,
 )
-from d3grasp.kernels.strain import StrainBuffers, StrainLayout, compute_sigma, grid_tet_mesh
+from d3grasp.kernels.strain import StrainBuffers, StrainLayout, compute_sigma
+from d3grasp.kernels.strain_numpy import grid_tet_mesh
 from scipy.spatial.transform import Rotation
 
 wp.config.log_level = wp.LOG_WARNING

@@ -5,11 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-from d3grasp.kernels.strain import (
-    StrainBuffers,
-    StrainLayout,
-    compute_sigma,
-    compute_strain,
+from d3grasp.kernels.strain import StrainBuffers, StrainLayout, compute_sigma, compute_strain
+from d3grasp.kernels.strain_numpy import (
     deformation_sigma,
     green_lagrange_max_eig,
     grid_tet_mesh,
