@@ -39,7 +39,7 @@ below (the paper writes ``+k_j ||j||^2`` with an implicitly negative ``k_j``). P
   for a few steps, after which it rests), so on our CPU sample budget this term carries the
   success signal. ``k_l = 0`` (the default) gives the paper's reward.
 
-``total`` is the sum of the eight terms. All kernels use only differentiable operations and
+``total`` is the sum of the terms of :data:`TERM_NAMES`. All kernels use only differentiable operations and
 atomics, so the whole computation supports ``wp.Tape`` (e.g. gradients with respect to forces).
 Default coefficients put each term at O(0.01-1) per control step in a typical grasp (6 cm object,
 16 joints, forces of a few N); they are starting points for tuning, not values from the paper.
@@ -269,7 +269,7 @@ class RewardInputs:
 
 @dataclass
 class RewardBuffers:
-    """Outputs: ``terms`` (W, 8) in :data:`TERM_NAMES` order and ``total`` (W,); constants per config."""
+    """Outputs: ``terms`` (W, len(TERM_NAMES)) in that order and ``total`` (W,); constants per config."""
 
     terms: wp.array
     total: wp.array

@@ -57,7 +57,7 @@ def _meaning(line: int, trailing: dict[int, str], standalone: dict[int, str]) ->
 def _first_sentence(text: str) -> str:
     if ". " in text:
         text = text[: text.index(". ") + 1]
-    return text.replace("|", "/")
+    return text.replace("|", "\\|")  # a table cell: an escaped bar, not a column
 
 
 def _field_meanings(cls: type) -> dict[str, str]:

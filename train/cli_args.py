@@ -139,7 +139,9 @@ def make_train_parser() -> argparse.ArgumentParser:
         "--resume", action="store_true", help="continue from a checkpoint (weights, optimizer, count)"
     )
     p.add_argument(
-        "--load_run", default=None, help="run folder name or regex to resume from (default: latest)"
+        "--load_run",
+        default=None,
+        help="run to resume: its folder's name, a regex, or its path (default: latest)",
     )
     p.add_argument(
         "--checkpoint",

@@ -101,16 +101,22 @@ def load_env_factory(spec: str) -> Callable[..., Any]:
 
 def resume_checkpoint(experiment_dir: Path, load_run: str | None, checkpoint: str | None) -> Path:
     """Isaac Lab's resume rule: the latest (or ``load_run``-matching) run, its highest (or
-    ``checkpoint``-matching) ``model_<N>.pt``. A ``checkpoint`` that is an existing path wins."""
+    ``checkpoint``-matching) ``model_<N>.pt``. A ``checkpoint`` that is a path wins; a ``load_run``
+    that is a path names the run folder itself."""
     if checkpoint and os.sep in checkpoint:
         path = Path(checkpoint)
         if not path.is_file():
             raise CheckpointError(f"checkpoint not found: {path}")
         return path
-    if not experiment_dir.is_dir():
+    if load_run and os.sep in load_run:  # a run folder's path, as a user copies it from the log line
+        if not Path(load_run).is_dir():
+            raise CheckpointError(f"run folder not found: {load_run}")
+        runs = [Path(load_run)]
+    elif not experiment_dir.is_dir():
         raise CheckpointError(f"nothing to resume: no runs in {experiment_dir}")
-    runs = sorted(p for p in experiment_dir.iterdir() if p.is_dir())
-    if load_run:
+    else:
+        runs = sorted(p for p in experiment_dir.iterdir() if p.is_dir())
+    if load_run and os.sep not in load_run:
         rx = re.compile(load_run)
         # A search, not a full match: run folders start with a timestamp, users remember the run name.
         runs = [p for p in runs if p.name == load_run or rx.search(p.name)]

@@ -390,8 +390,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-plan-grasps",
         dest="plan_grasps",
         action="store_false",
-        help="skip planning the new objects' grasps (plan-grasps; ~80 s a rigid object on 2 cores, "
-        "~40 s with --schedule legacy, minutes a soft one): "
+        help="skip planning the new objects' grasps (plan-grasps; about a minute a rigid object on 2 cores, "
+        "minutes a soft one, docs/grasp_planning.md#cost): "
         "until planned they get the geometric rule's grasp",
     )
     p.add_argument(

@@ -1,4 +1,4 @@
-"""The reward: the paper's terms plus the lift term, computed by the Warp kernels of
+"""The reward: the terms of ``d3grasp.kernels.rewards.TERM_NAMES``, computed by the Warp kernels of
 ``d3grasp.kernels.rewards`` for all worlds at once (their weights: ``GraspEnvConfig.rewards``), and
 the terms computed in torch, declared once in :data:`TORCH_TERMS` (the residual penalty each step,
 the success bonus at an episode's end).
