@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import pathlib
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -466,3 +469,21 @@ def test_the_rule_squeezes_soft_worlds_with_the_soft_squeeze(mixed_env, monkeypa
     assert [bool(x) for x in seen[0]] == [False, True]
     squeeze = baseline.squeeze_per_world(env.cfg.rule, seen[0]).flatten().tolist()
     assert squeeze == pytest.approx([env.cfg.rule.squeeze, env.cfg.rule.squeeze_deformable])
+
+
+def test_the_environment_is_its_named_parts(mixed_env):
+    """The environment's state lives in named parts (d3grasp/envs/parts.py and the mdp modules'
+    states): GraspEnv itself holds at most 30 attributes, and nothing in the package sets one on an
+    env by a computed name (``setattr``), which neither grep nor an IDE can follow."""
+    mdp_parts = {"observation", "reward", "scoring"}
+    own = set(vars(mixed_env)) - mdp_parts
+    assert mdp_parts <= set(vars(mixed_env))
+    assert len(own) <= 30, sorted(own)
+    root = pathlib.Path(__file__).resolve().parents[2]
+    offenders = [
+        str(p.relative_to(root))
+        for folder in ("d3grasp", "kernels", "train")
+        for p in (root / folder).rglob("*.py")
+        if re.search(r"setattr\((self\.)?env\b", p.read_text(encoding="utf-8"))
+    ]
+    assert not offenders
