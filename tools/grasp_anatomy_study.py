@@ -51,6 +51,8 @@ def _spec_effort() -> np.ndarray:
 
 def instrumented_env(*args: Any, **kwargs: Any) -> Any:
     """``make_env`` whose episode records carry the grip, torques and dynamics at the first push."""
+    import newton
+
     from d3grasp.envs import make_env
 
     env = make_env(*args, **kwargs)
@@ -59,6 +61,7 @@ def instrumented_env(*args: Any, **kwargs: Any) -> Any:
     lay, model = env.layout, env.model
     ke, kd = model.joint_target_ke.numpy(), model.joint_target_kd.numpy()
     mu = model.shape_material_mu.numpy()
+    colliding = (model.shape_flags.numpy() & int(newton.ShapeFlags.COLLIDE_SHAPES)) != 0
     body_mass = model.body_mass.numpy()
     particle_mass = model.particle_mass.numpy() if model.particle_count else None
     snapshots: dict[int, dict[str, Any]] = {}
@@ -75,7 +78,11 @@ def instrumented_env(*args: Any, **kwargs: Any) -> Any:
             normal = np.abs(forces[w, :, 2])
             if lay.object_shapes[w].size:
                 mass = float(body_mass[lay.object_body[w]])
-                friction = float(mu[lay.object_shapes[w][0]])
+                # The pair's coefficient as SolverVBD mixes it: the geometric mean of the pad's and the
+                # object's colliding shape's (the object's first shape is its visual mesh, which does
+                # not collide: reading it gave 1.0 where the pads met 0.775 on a 0.6 hull).
+                hull = next(int(s) for s in lay.object_shapes[w] if colliding[s])
+                friction = float(np.sqrt(mu[hull] * mu[lay.pad_shapes[w][0]]))
             else:
                 p0, n = int(lay.particle_start[w]), int(lay.particle_count[w])
                 mass = float(particle_mass[p0 : p0 + n].sum()) if particle_mass is not None else float("nan")
