@@ -172,3 +172,24 @@ def test_the_checkout_without_the_mapping_says_what_to_run() -> None:
     assert res.returncode != 0
     assert res.stderr.strip().splitlines()[-1].startswith("ImportError: ")
     assert "pip install -e ." in res.stderr
+
+
+# What a reader can take in at once: a module of one role, a function of one step.
+MAX_MODULE_LINES = 450
+MAX_FUNCTION_LINES = 100
+
+
+def test_modules_and_functions_stay_readable() -> None:
+    long_files, long_functions = [], []
+    for path in _modules().values():
+        text = path.read_text(encoding="utf-8")
+        name = str(path.relative_to(REPO))
+        if text.count("\n") > MAX_MODULE_LINES:
+            long_files.append(f"{name} ({text.count(chr(10))} lines)")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                length = node.end_lineno - node.lineno + 1
+                if length > MAX_FUNCTION_LINES:
+                    long_functions.append(f"{name}:{node.lineno} {node.name} ({length} lines)")
+    assert not long_files, long_files
+    assert not long_functions, long_functions

@@ -241,10 +241,6 @@ class GraspEnv:
         return self.physics.graph
 
     @property
-    def strain_layout(self):
-        return self.sensors.strain_layout
-
-    @property
     def nonfinite_resets(self) -> int:
         """Worlds reset for a non-finite state since the environment was made."""
         return int(self.scoring.now.nonfinite_count[0])
