@@ -51,18 +51,14 @@ def _spec_effort() -> np.ndarray:
 
 def instrumented_env(*args: Any, **kwargs: Any) -> Any:
     """``make_env`` whose episode records carry the grip, torques and dynamics at the first push."""
-    import newton
-
     from d3grasp.envs import make_env
+    from d3grasp.envs.scene import pad_object_friction
 
     env = make_env(*args, **kwargs)
     inner_step = env.step
     push_start = env.script.phase_start["disturb"]
     lay, model = env.layout, env.model
     ke, kd = model.joint_target_ke.numpy(), model.joint_target_kd.numpy()
-    mu = model.shape_material_mu.numpy()
-    colliding = (model.shape_flags.numpy() & int(newton.ShapeFlags.COLLIDE_SHAPES)) != 0
-    body_mass = model.body_mass.numpy()
     particle_mass = model.particle_mass.numpy() if model.particle_count else None
     snapshots: dict[int, dict[str, Any]] = {}
 
@@ -72,21 +68,17 @@ def instrumented_env(*args: Any, **kwargs: Any) -> Any:
         qd = env.view.joint_qd.detach().cpu().numpy()
         target = env.view.target.detach().cpu().numpy()
         # Mass and friction are written at reset; read them once per snapshot (the model's arrays).
+        body_mass = model.body_mass.numpy()
+        friction_of = pad_object_friction(model, lay)  # NaN for soft: the particle law, not a coefficient
         for w in worlds:
             qi, di = lay.finger_q[w], lay.finger_dof[w]
             torque = ke[di] * (target[qi] - q[qi]) - kd[di] * qd[di]  # targets in joint_q layout
             normal = np.abs(forces[w, :, 2])
             if lay.object_shapes[w].size:
                 mass = float(body_mass[lay.object_body[w]])
-                # The pair's coefficient as SolverVBD mixes it: the geometric mean of the pad's and the
-                # object's colliding shape's (the object's first shape is its visual mesh, which does
-                # not collide: reading it gave 1.0 where the pads met 0.775 on a 0.6 hull).
-                hull = next(int(s) for s in lay.object_shapes[w] if colliding[s])
-                friction = float(np.sqrt(mu[hull] * mu[lay.pad_shapes[w][0]]))
             else:
                 p0, n = int(lay.particle_start[w]), int(lay.particle_count[w])
                 mass = float(particle_mass[p0 : p0 + n].sum()) if particle_mass is not None else float("nan")
-                friction = float("nan")  # soft contacts: the particle law, not the shape's coefficient
             snapshots[int(w)] = {
                 "pad_forces": np.round(forces[w], 4).tolist(),
                 "grip_n": float(normal.sum()),
@@ -94,7 +86,7 @@ def instrumented_env(*args: Any, **kwargs: Any) -> Any:
                 "torques": np.round(torque, 4).tolist(),
                 "max_torque": float(np.abs(torque).max()),
                 "mass": mass,
-                "mu": friction,
+                "mu": float(friction_of[w]),
             }
 
     def step(actions: Any) -> Any:

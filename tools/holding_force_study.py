@@ -70,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     quiet_warp()
     import newton
 
+    from d3grasp.envs.scene import pad_object_friction
+
     ids = tuple(args.objects)
     n = len(ids)
     W = 3 * n
@@ -95,17 +97,12 @@ def main(argv: list[str] | None = None) -> int:
     late_world = widx >= 2 * n  # the rule until the lift starts, then the strongest closure
     MODES = ("rule", "max", "rule+max")
 
-    # Friction: pad vs the object's colliding shape(s).
+    # Friction: pad vs the object's colliding shape(s), each side's coefficient and the pair's.
     mu = model.shape_material_mu.numpy()
-    flags = model.shape_flags.numpy()
-    collide = int(newton.ShapeFlags.COLLIDE_SHAPES)
+    colliding = (model.shape_flags.numpy() & int(newton.ShapeFlags.COLLIDE_SHAPES)) != 0
     mu_pad = np.array([mu[lay.pad_shapes[w]].mean() for w in range(W)])
-    mu_obj = []
-    for w in range(W):
-        shapes = [s for s in lay.object_shapes[w] if flags[s] & collide]
-        mu_obj.append(float(np.mean(mu[shapes])) if shapes else float("nan"))
-    mu_obj = np.array(mu_obj)
-    mu_pair = np.sqrt(mu_pad * mu_obj)
+    mu_obj = np.array([mu[[s for s in lay.object_shapes[w] if colliding[s]]].mean() for w in range(W)])
+    mu_pair = pad_object_friction(model, lay)
 
     # Drives and effort limits of the finger joints.
     ke = torch.as_tensor(model.joint_target_ke.numpy()[lay.finger_dof], dtype=torch.float32)

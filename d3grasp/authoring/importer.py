@@ -153,12 +153,6 @@ def surface_triangle_count(tets: np.ndarray) -> int:
     return int(np.count_nonzero(counts == 1))
 
 
-def tet_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Signed volumes of tets (positive for the x1-x0, x2-x0, x3-x0 right-handed order)."""
-    p = np.asarray(points, dtype=np.float64)[np.asarray(tets, dtype=np.int64)]
-    return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
-
-
 def author_soft(
     mesh: trimesh.Trimesh,
     root: str | Path,
@@ -180,7 +174,7 @@ def author_soft(
     Uses the soft-body authoring functions (:mod:`d3grasp.authoring.tetmesh`,
     :mod:`d3grasp.authoring.usd_soft`). ``label`` names the input in errors (default: the id).
     """
-    from d3grasp.authoring.tetmesh import tetrahedralize
+    from d3grasp.authoring.tetmesh import tet_signed_volumes, tetrahedralize
     from d3grasp.authoring.usd_soft import write_soft_usd
 
     root = Path(root)
@@ -192,7 +186,7 @@ def author_soft(
         raise MeshError(f"{label}: tet meshing failed ({exc})") from None
     points = np.asarray(points, dtype=np.float64)
     tets = np.asarray(tets, dtype=np.int64)
-    vols = tet_volumes(points, tets)
+    vols = tet_signed_volumes(points, tets)
     if len(tets) == 0 or np.any(vols <= 0):
         raise MeshError(f"{label}: tet meshing produced {len(tets)} tets, some inverted or empty")
     volume = float(vols.sum())

@@ -401,7 +401,7 @@ class GraspEnv:
         same 14 builds then go 746 -> 774 MB, level from the sixth."""
         keep = {
             "cfg", "task_name", "num_envs", "num_actions", "wp_device", "torch_device",
-            "max_episode_length", "phase_start", "manifest_path", "world_entries",
+            "max_episode_length", "manifest_path", "world_entries",
         }  # fmt: skip
         for name in [n for n in vars(self) if n not in keep]:
             delattr(self, name)

@@ -75,7 +75,7 @@ class SceneLayout:
     link_bodies: np.ndarray  # (W, 17) palm + finger links, dexhand13.LINK_NAMES order
     hand_shapes: list[np.ndarray]  # per world, every collision shape of the hand
     pad_shapes: np.ndarray  # (W, 11)
-    object_shapes: list[np.ndarray]  # per world, collision shapes of a rigid object (empty for soft)
+    object_shapes: list[np.ndarray]  # per world, a rigid object's shapes, visual mesh first (empty: soft)
     articulation_world: np.ndarray  # (A,) world of each articulation (for masked FK on reset)
     rest_particle_q: np.ndarray  # (P, 3) particle positions as loaded (objects centred at the origin)
     finger_lower: np.ndarray  # (16,) joint limits (same hand in every world)
@@ -288,3 +288,18 @@ def apply_soft_damping(model: newton.Model, layout: SceneLayout, soft_damping: f
             if e.kind == "deformable"
         ),
     )
+
+
+def pad_object_friction(model: newton.Model, layout: SceneLayout) -> np.ndarray:
+    """(W,) the friction coefficient SolverVBD applies where a pad meets each world's rigid object:
+    the geometric mean of the two shapes' coefficients (``rigid_vbd_kernels``), the object's over its
+    colliding shapes (its first shape is the visual mesh, which does not collide); NaN for a soft
+    object, whose contacts follow the particle law."""
+    mu = model.shape_material_mu.numpy()
+    colliding = (model.shape_flags.numpy() & int(newton.ShapeFlags.COLLIDE_SHAPES)) != 0
+    out = np.full(len(layout.object_shapes), np.nan)
+    for w, shapes in enumerate(layout.object_shapes):
+        hulls = [s for s in shapes if colliding[s]]
+        if hulls:
+            out[w] = np.sqrt(float(mu[layout.pad_shapes[w]].mean()) * float(mu[hulls].mean()))
+    return out

@@ -12,7 +12,7 @@ import warp as wp
 from d3grasp.authoring.hand_newton import add_hand  # noqa: E402
 from d3grasp.authoring.manifest import read_manifest, resolve_asset_path  # noqa: E402
 from d3grasp.dexhand13 import LINK_NAMES  # noqa: E402
-from d3grasp.envs.scene import HAND_ANCHOR_QUAT, build_scene  # noqa: E402
+from d3grasp.envs.scene import HAND_ANCHOR_QUAT, build_scene, pad_object_friction  # noqa: E402
 from d3grasp.paths import default_manifest  # noqa: E402
 
 
@@ -98,3 +98,16 @@ def test_templated_scene_is_the_per_world_import(kinematic_palm):
             j = int(np.flatnonzero(ref.joint_child.numpy() == body0)[0])
             assert layout.object_joint_q[w] == ref.joint_q_start.numpy()[j]
             assert layout.object_joint_qd[w] == ref.joint_qd_start.numpy()[j]
+
+
+def test_pad_object_friction_is_the_geometric_mean_with_the_objects_hull() -> None:
+    """SolverVBD mixes a contact pair's coefficients by their geometric mean: a pad (the scene's shape
+    coefficient, 1.0) on frustum_09's hull (its manifest friction, 0.6) meets sqrt(0.6); the object's
+    visual mesh (first, non-colliding) does not count; a soft object has no shape coefficient."""
+    entries = _entries(["frustum_09", "sponge_block_m"])
+    with wp.ScopedDevice("cpu"):
+        model, layout = build_scene(entries, shape_mu=1.0, particle_radius=0.003, table_height=0.0)
+    friction = pad_object_friction(model, layout)
+    assert entries[0][0].material["friction"] == 0.6
+    assert friction[0] == pytest.approx(np.sqrt(0.6 * 1.0), rel=1e-6)
+    assert np.isnan(friction[1])
